@@ -1,0 +1,36 @@
+"""One error type for bad input, so the CLI can print one clear line and exit 1."""
+from __future__ import annotations
+
+import difflib
+from pathlib import Path
+
+
+class InputError(ValueError):
+    """Bad user input: names the offending file (or config key) and what is wrong."""
+
+    def __init__(self, source: str | Path, problem: str):
+        self.source = str(source)
+        self.problem = problem
+        super().__init__(f"{self.source}: {problem}")
+
+
+def closest(name: str, choices) -> str:
+    """' (did you mean X?)' suffix for an unknown name, or ''."""
+    match = difflib.get_close_matches(name, list(choices), n=1, cutoff=0.5)
+    return f" (did you mean '{match[0]}'?)" if match else ""
+
+
+def format_validation_error(err: Exception) -> str:
+    """Compress a pydantic ValidationError to one line naming each bad key."""
+    errors = getattr(err, "errors", None)
+    if errors is None:
+        return str(err)
+    parts = []
+    for e in errors():
+        loc = ".".join(str(x) for x in e.get("loc", ()))
+        if e.get("type") == "extra_forbidden":
+            parts.append(f"unknown key '{loc}'")
+        else:
+            msg = e.get("msg", "invalid")
+            parts.append(f"{loc}: {msg}" if loc else msg)
+    return "; ".join(parts)

@@ -1,0 +1,73 @@
+"""`Frame`: the output of one render, with its exact ground truth.
+
+All arrays are numpy, row 0 is the top of the image, column 0 the left.
+`image` is linear HDR radiance (never gamma-encoded or clipped); `normal` is in
+the camera frame (x right, y up, z toward the camera), unit length where
+`mask` is True and zero elsewhere.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from msps_render.scene.spec import SceneSpec
+
+
+@dataclass
+class Frame:
+    image: np.ndarray  # (H, W, 3) float32 linear radiance
+    normal: np.ndarray  # (H, W, 3) float32, camera frame
+    mask: np.ndarray  # (H, W) bool, pixel centre hits the object
+    depth: np.ndarray  # (H, W) float32, distance along the view ray (0 = background)
+    part: np.ndarray  # (H, W) int8, material part index (-1 = background)
+    spec: SceneSpec
+    variant: str = ""
+    per_light: np.ndarray | None = None  # (K, H, W, 3) float32, one image per light
+    env_image: np.ndarray | None = None  # (H, W, 3) environment-only contribution
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        H, W = self.mask.shape
+        for name, shape in (("image", (H, W, 3)), ("normal", (H, W, 3)), ("depth", (H, W)),
+                            ("part", (H, W))):
+            arr = getattr(self, name)
+            if arr.shape != shape:
+                raise ValueError(f"Frame.{name} has shape {arr.shape}, expected {shape}")
+
+    @property
+    def light_dirs(self) -> np.ndarray:
+        """(K, 3) unit vectors toward each light, camera frame."""
+        return np.array([l.direction for l in self.spec.lights], dtype=np.float64)
+
+    @property
+    def crosstalk(self) -> np.ndarray:
+        """3x3 M with M[i, k] = response of channel i to light k (white reflector)."""
+        if self.spec.crosstalk is not None:
+            return np.array(self.spec.crosstalk, dtype=np.float64)
+        return np.array([l.rgb for l in self.spec.lights], dtype=np.float64).T
+
+    # ------------------------------------------------------------------ output
+    def save(self, out_dir: str | Path) -> list[Path]:
+        """Write EXR (image, normal, depth, mask) + PNG previews + scene.json."""
+        from msps_render.io.images import write_exr, write_png
+        from msps_render.preview import normal_to_rgb8, tonemap
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        written = [
+            write_exr(out / "image.exr", self.image),
+            write_exr(out / "normal.exr", self.normal),
+            write_exr(out / "depth.exr", self.depth[..., None].repeat(3, -1)),
+            write_png(out / "image.png", tonemap(self.image, self.mask)),
+            write_png(out / "normal.png", normal_to_rgb8(self.normal, self.mask)),
+            write_png(out / "mask.png", (self.mask * 255).astype(np.uint8)),
+        ]
+        if self.per_light is not None:
+            for k, img in enumerate(self.per_light):
+                written.append(write_exr(out / f"light{k}.exr", img))
+        p = out / "scene.json"
+        p.write_text(self.spec.to_json())
+        written.append(p)
+        return written

@@ -1,0 +1,216 @@
+"""`SceneSpec`: one scene as plain, validated, JSON-serialisable data.
+
+A SceneSpec is everything the renderer needs and nothing it computes: the
+sampler (`scene.sample`) draws it from a seeded Generator, the renderer
+(`render.render_frame`) turns it into a `Frame`.  Keeping it pure data means a
+scene can be printed, saved next to its render, diffed and re-rendered.
+
+Conventions (see docs/physics.md): the camera frame is x right, y up, z toward
+the camera; the object sits at the origin inside the unit sphere; light
+directions are unit vectors pointing from the surface toward the light.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Annotated, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+Vec3 = tuple[float, float, float]
+RGB = tuple[float, float, float]
+
+
+class _Strict(BaseModel):
+    """Base: unknown keys are errors, values are immutable once validated."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _unit(v: Vec3, what: str) -> Vec3:
+    n = math.sqrt(sum(c * c for c in v))
+    if not math.isfinite(n) or n < 1e-9:
+        raise ValueError(f"{what} must be a finite non-zero vector, got {v}")
+    return tuple(float(c) / n for c in v)  # type: ignore[return-value]
+
+
+# --------------------------------------------------------------------- camera
+class CameraSpec(_Strict):
+    """Orthographic by default: photometric stereo assumes a distant viewer."""
+
+    kind: Literal["orthographic", "perspective"] = "orthographic"
+    width: int = Field(128, ge=8, le=8192)
+    height: int = Field(128, ge=8, le=8192)
+    # Half-extent of the orthographic view (world units); object fits in radius 1.
+    extent: float = Field(1.05, gt=0)
+    fov_deg: float = Field(25.0, gt=0, lt=170)
+    distance: float = Field(5.0, gt=1.0)
+
+
+# --------------------------------------------------------------------- lights
+class LightSpec(_Strict):
+    """One light. `rgb` is irradiance (directional) or intensity (point) per channel."""
+
+    kind: Literal["directional", "point"] = "directional"
+    direction: Vec3
+    rgb: RGB = (1.0, 1.0, 1.0)
+    distance: float | None = Field(None, gt=1.0, description="point lights only")
+    slant_deg: float | None = None
+    tilt_deg: float | None = None
+    spectrum: str | None = Field(None, description="spectrum id (spectral mode)")
+
+    @field_validator("direction")
+    @classmethod
+    def _norm(cls, v: Vec3) -> Vec3:
+        return _unit(v, "light direction")
+
+    @field_validator("rgb")
+    @classmethod
+    def _nonneg(cls, v: RGB) -> RGB:
+        if any((not math.isfinite(c)) or c < 0 for c in v):
+            raise ValueError(f"light rgb must be finite and >= 0, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _point_needs_distance(self) -> "LightSpec":
+        if self.kind == "point" and self.distance is None:
+            raise ValueError("a point light needs a distance")
+        return self
+
+
+# ---------------------------------------------------------------- environment
+class EnvSpec(_Strict):
+    """HDR environment light: a file (EXR/HDR) or the procedural sky."""
+
+    source: str = "procedural"  # "procedural" or a path to .exr / .hdr
+    scale: float = Field(1.0, ge=0)
+    rotation_deg: float = 0.0  # about the camera y (up) axis
+    seed: int = 0  # procedural sky only
+    ratio: float | None = Field(None, description="env/light irradiance ratio it was scaled to")
+
+
+# ------------------------------------------------------------------ materials
+MaterialKind = Literal["diffuse", "plastic", "roughplastic", "roughconductor", "principled", "merl"]
+
+
+class MaterialSpec(_Strict):
+    """A material by kind and parameters; `name` says which library entry it came from."""
+
+    name: str
+    kind: MaterialKind
+    params: dict[str, Union[float, str, tuple[float, float, float]]] = Field(default_factory=dict)
+
+
+# --------------------------------------------------------------------- shapes
+class ShapeSpec(_Strict):
+    """Geometry. `blobby`: radially displaced sphere; `mesh`: a file; `sphere`: analytic."""
+
+    kind: Literal["blobby", "mesh", "sphere"]
+    name: str = ""
+    path: str | None = None  # mesh only
+    sh_coeffs: tuple[float, ...] = ()  # blobby: real SH coefficients, l = 1..lmax
+    subdivisions: int = Field(5, ge=1, le=7)  # blobby icosphere level
+    rotation: tuple[Vec3, Vec3, Vec3] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    radius: float = Field(1.0, gt=0, le=1.0)  # scale of the normalised shape
+
+    @model_validator(mode="after")
+    def _check(self) -> "ShapeSpec":
+        if self.kind == "mesh" and not self.path:
+            raise ValueError("shape kind 'mesh' needs a path")
+        return self
+
+
+class SplitSpec(_Strict):
+    """How the surface is divided into material parts (each its own Mitsuba shape).
+
+    `planes`: part = number of planes the face centroid is in front of (mod n);
+    `field`: part = quantile bin of a smooth random field (sum of SH) over the surface.
+    """
+
+    kind: Literal["none", "planes", "field"] = "none"
+    n_parts: int = Field(1, ge=1, le=16)
+    normals: tuple[Vec3, ...] = ()
+    offsets: tuple[float, ...] = ()
+    field_coeffs: tuple[float, ...] = ()
+
+
+# ------------------------------------------------------------------ integrator
+class IntegratorSpec(_Strict):
+    kind: Literal["path", "direct"] = "path"
+    max_depth: int = Field(6, ge=2, le=64)
+    spp: int = Field(32, ge=1, le=65536)
+    seed: int = Field(0, ge=0)
+
+
+# ---------------------------------------------------------------------- scene
+class SceneSpec(_Strict):
+    shape: ShapeSpec
+    split: SplitSpec = SplitSpec()
+    materials: tuple[MaterialSpec, ...]
+    lights: tuple[LightSpec, ...]
+    environment: EnvSpec | None = None
+    camera: CameraSpec = CameraSpec()
+    integrator: IntegratorSpec = IntegratorSpec()
+    mode: Literal["rgb", "spectral"] = "rgb"
+    crosstalk: tuple[RGB, RGB, RGB] | None = None  # effective 3x3 M (rows: channels, cols: lights)
+    camera_response: str | None = None  # spectral mode: camera sensitivity id
+    seed: int | None = None  # the seed the scene was sampled from (provenance)
+
+    @model_validator(mode="after")
+    def _check(self) -> "SceneSpec":
+        if not self.materials:
+            raise ValueError("a scene needs at least one material")
+        if self.split.kind != "none" and len(self.materials) < self.split.n_parts:
+            raise ValueError(
+                f"split has {self.split.n_parts} parts but only {len(self.materials)} materials"
+            )
+        if not self.lights and self.environment is None:
+            raise ValueError("a scene needs at least one light or an environment")
+        if self.shape.kind == "sphere" and self.split.kind != "none":
+            raise ValueError("the analytic sphere cannot be split into parts; use kind 'blobby'")
+        return self
+
+    # ---- serialisation
+    def to_json(self, indent: int | None = 2) -> str:
+        return self.model_dump_json(indent=indent)
+
+    @classmethod
+    def from_json(cls, text: str, source: str = "<string>") -> "SceneSpec":
+        from msps_render.errors import InputError, format_validation_error
+
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise InputError(source, f"not valid JSON ({e})") from None
+        try:
+            return cls.model_validate(data)
+        except Exception as e:  # pydantic.ValidationError
+            raise InputError(source, format_validation_error(e)) from None
+
+    @classmethod
+    def load(cls, path: str | Path) -> "SceneSpec":
+        from msps_render.errors import InputError
+
+        p = Path(path)
+        try:
+            text = p.read_text()
+        except OSError as e:
+            raise InputError(p, f"cannot read scene file ({e.strerror})") from None
+        return cls.from_json(text, str(p))
+
+    def summary(self) -> str:
+        """One human-readable line per component (for logs and `msps inspect`)."""
+        L = [f"shape: {self.shape.kind} {self.shape.name or self.shape.path or ''}".rstrip()]
+        L.append(f"parts: {self.split.kind} x{self.split.n_parts}; materials: "
+                 + ", ".join(m.name for m in self.materials))
+        for i, l in enumerate(self.lights):
+            L.append(f"light {i}: {l.kind} dir=({l.direction[0]:+.3f},{l.direction[1]:+.3f},"
+                     f"{l.direction[2]:+.3f}) rgb={tuple(round(c, 4) for c in l.rgb)}")
+        if self.environment:
+            e = self.environment
+            L.append(f"environment: {e.source} scale={e.scale:g} rot={e.rotation_deg:.1f}deg")
+        c = self.camera
+        L.append(f"camera: {c.kind} {c.width}x{c.height}; integrator: {self.integrator.kind} "
+                 f"depth={self.integrator.max_depth} spp={self.integrator.spp}; mode: {self.mode}")
+        return "\n".join(L)
