@@ -1,0 +1,81 @@
+"""Choosing a Mitsuba variant: fast LLVM JIT when it really works, scalar otherwise.
+
+Why a subprocess probe: drjit's LLVM backend needs a shared libLLVM it can use;
+an unusable one (e.g. LLVM 14 here) can abort the whole process, which no
+try/except can catch.  So we try the LLVM variant once in a child process and
+remember the answer for this process (`lru_cache`), then workers receive the
+resolved name explicitly.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import warnings
+from functools import lru_cache
+
+PREFERRED = {"rgb": ("llvm_ad_rgb", "scalar_rgb"), "spectral": ("llvm_ad_spectral", "scalar_spectral")}
+
+_PROBE = """
+import mitsuba as mi, drjit as dr
+mi.set_variant({variant!r})
+s = mi.load_dict({{'type': 'scene', 'sphere': {{'type': 'sphere'}},
+    'sensor': {{'type': 'orthographic', 'film': {{'type': 'hdrfilm', 'width': 4, 'height': 4}}}},
+    'light': {{'type': 'constant'}}, 'integrator': {{'type': 'direct'}}}})
+img = mi.render(s, spp=1)
+dr.eval(img)
+print('OK')
+"""
+
+
+class VariantFallbackWarning(RuntimeWarning):
+    pass
+
+
+@lru_cache(maxsize=None)
+def probe_variant(variant: str, timeout: float = 120.0) -> tuple[bool, str]:
+    """Run a tiny render in a child process; (works, reason)."""
+    try:
+        r = subprocess.run([sys.executable, "-c", _PROBE.format(variant=variant)], capture_output=True,
+                           text=True, timeout=timeout, env=os.environ.copy())
+    except subprocess.TimeoutExpired:
+        return False, f"probe of {variant} timed out"
+    if r.returncode == 0 and "OK" in r.stdout:
+        return True, ""
+    tail = (r.stderr or r.stdout).strip().splitlines()[-1:] or [f"exit code {r.returncode}"]
+    return False, tail[0][:200]
+
+
+def resolve_variant(mode: str = "rgb", requested: str | None = None) -> str:
+    """The variant to render with. `MSPS_VARIANT` or `requested` force one."""
+    import mitsuba as mi
+
+    requested = requested or os.environ.get("MSPS_VARIANT") or None
+    if requested:
+        if requested not in mi.variants():
+            raise ValueError(f"Mitsuba variant '{requested}' is not available (have: {', '.join(mi.variants())})")
+        return requested
+    fast, slow = PREFERRED[mode]
+    if fast in mi.variants():
+        ok, why = probe_variant(fast)
+        if ok:
+            return fast
+    else:
+        why = "not built into this Mitsuba"
+    warnings.warn(f"Mitsuba variant {fast} is unusable ({why}); falling back to {slow}, which is much "
+                  f"slower. Install a shared libLLVM >= 15 (Debian: apt-get install libllvm19).",
+                  VariantFallbackWarning, stacklevel=2)
+    return slow
+
+
+def activate(variant: str, threads: int | None = None):
+    """Set the Mitsuba variant (and thread count) for this process; returns the `mi` module."""
+    import drjit as dr
+    import mitsuba as mi
+
+    if mi.variant() != variant:
+        mi.set_variant(variant)
+    threads = threads or (int(os.environ["MSPS_THREADS"]) if os.environ.get("MSPS_THREADS") else None)
+    if threads:
+        dr.set_thread_count(int(threads))
+    return mi

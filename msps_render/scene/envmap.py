@@ -1,0 +1,134 @@
+"""HDR environment maps: reading EXR/HDR files and a procedural sky.
+
+Maps are equirectangular float32 (H, 2H, 3) linear radiance.  Files are
+validated on load (NaN/inf/negative values are errors naming the file) so a bad
+map fails before any rendering starts.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from msps_render.errors import InputError
+
+
+def _read_exr(p: Path) -> np.ndarray:
+    import OpenEXR
+
+    try:
+        with OpenEXR.File(str(p)) as f:
+            ch = f.channels()
+            if "RGB" in ch:
+                img = np.asarray(ch["RGB"].pixels)
+            elif "RGBA" in ch:
+                img = np.asarray(ch["RGBA"].pixels)[..., :3]
+            elif all(c in ch for c in "RGB"):
+                img = np.stack([np.asarray(ch[c].pixels) for c in "RGB"], axis=-1)
+            elif "Y" in ch:
+                img = np.repeat(np.asarray(ch["Y"].pixels)[..., None], 3, axis=-1)
+            else:
+                raise InputError(p, f"EXR has no RGB channels (found: {', '.join(ch)})")
+    except InputError:
+        raise
+    except Exception as e:
+        raise InputError(p, f"cannot read EXR ({str(e)[:120]})") from None
+    return img.astype(np.float32)
+
+
+def _read_hdr(p: Path) -> np.ndarray:
+    import mitsuba as mi  # Bitmap works without a variant; reads Radiance RGBE
+
+    try:
+        img = np.array(mi.Bitmap(str(p)), dtype=np.float32)
+    except Exception as e:
+        raise InputError(p, f"cannot read HDR ({str(e)[:120]})") from None
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=-1)
+    return img[..., :3]
+
+
+@lru_cache(maxsize=4)
+def load_envmap(path: str) -> np.ndarray:
+    """Read and validate an environment map (cached per process: maps are read-only)."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "environment map not found")
+    suffix = p.suffix.lower()
+    if suffix == ".exr":
+        img = _read_exr(p)
+    elif suffix in (".hdr", ".rgbe", ".pic"):
+        img = _read_hdr(p)
+    else:
+        raise InputError(p, f"unsupported environment map format '{p.suffix}' (use .exr or .hdr)")
+    if img.ndim != 3 or img.shape[0] < 2 or img.shape[1] < 2:
+        raise InputError(p, f"environment map has unusable shape {img.shape}")
+    bad_nan = int((~np.isfinite(img)).sum())
+    if bad_nan:
+        raise InputError(p, f"environment map has {bad_nan} NaN/inf values")
+    neg = int((img < 0).sum())
+    if neg:
+        raise InputError(p, f"environment map has {neg} negative values")
+    img.setflags(write=False)
+    return img
+
+
+def procedural_sky(seed: int = 0, height: int = 128) -> np.ndarray:
+    """A deterministic HDR sky: vertical gradient, warm ground, and 1–3 sun-like blobs.
+
+    Why: test sets need a plausible, high-dynamic-range surround without
+    downloading anything; the blobs give the hard directional component real
+    maps have.
+    """
+    rng = np.random.default_rng(seed)
+    H, W = height, 2 * height
+    v = (np.arange(H) + 0.5) / H  # 0 top (zenith) .. 1 bottom
+    u = (np.arange(W) + 0.5) / W
+    theta = np.pi * v[:, None] * np.ones((1, W))
+    phi = 2 * np.pi * u[None, :] * np.ones((H, 1))
+    up = np.cos(theta)  # 1 at zenith
+    zenith = np.array([0.25, 0.45, 0.9]) * rng.uniform(0.6, 1.2)
+    horizon = np.array([0.9, 0.85, 0.8]) * rng.uniform(0.6, 1.2)
+    ground = np.array([0.25, 0.2, 0.15]) * rng.uniform(0.3, 1.0)
+    t = np.clip(up, 0, 1)[..., None]
+    sky = horizon * (1 - t) + zenith * t
+    img = np.where(up[..., None] > 0, sky, ground * np.ones_like(sky))
+    # sun-like blobs: direction in the upper hemisphere, angular radius a few degrees
+    dirs = np.stack([np.sin(theta) * np.cos(phi), np.cos(theta), np.sin(theta) * np.sin(phi)], -1)
+    for _ in range(int(rng.integers(1, 4))):
+        th = rng.uniform(0.1, 1.3)
+        ph = rng.uniform(0, 2 * np.pi)
+        d = np.array([np.sin(th) * np.cos(ph), np.cos(th), np.sin(th) * np.sin(ph)])
+        ang = np.arccos(np.clip(dirs @ d, -1, 1))
+        width = np.radians(rng.uniform(2.0, 6.0))
+        power = rng.uniform(20.0, 200.0)
+        color = np.array([1.0, 0.95, 0.85]) * rng.uniform(0.8, 1.2, 3)
+        img = img + power * np.exp(-0.5 * (ang / width) ** 2)[..., None] * color
+    return img.astype(np.float32)
+
+
+def envmap_pixels(source: str, seed: int = 0) -> np.ndarray:
+    return procedural_sky(seed) if source == "procedural" else load_envmap(source)
+
+
+def mean_irradiance_on_axis(img: np.ndarray, axis=(0.0, 0.0, 1.0), rotation_deg: float = 0.0) -> float:
+    """Cosine-weighted irradiance (luminance-averaged over RGB) on a plane facing `axis`.
+
+    Used to scale the env map to a target ratio of the coloured lights'
+    irradiance. Equirect convention matches Mitsuba's envmap: +y up, and
+    rotation is about +y.
+    """
+    H, W = img.shape[:2]
+    v = (np.arange(H) + 0.5) / H
+    u = (np.arange(W) + 0.5) / W
+    theta = np.pi * v
+    phi = 2 * np.pi * u - np.radians(rotation_deg)
+    st = np.sin(theta)[:, None]
+    # Mitsuba envmap: direction = (sin θ sin φ', cos θ, -sin θ cos φ') with φ' = 2πu (see docs/physics.md)
+    d = np.stack([st * np.sin(phi)[None, :], np.cos(theta)[:, None] * np.ones((1, W)),
+                  -st * np.cos(phi)[None, :]], -1)
+    cos = np.clip(d @ np.asarray(axis, dtype=np.float64), 0, None)
+    dA = (np.pi / H) * (2 * np.pi / W) * st
+    L = img.astype(np.float64).mean(axis=-1)
+    return float((L * cos * dA).sum())

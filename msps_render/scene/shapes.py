@@ -1,0 +1,207 @@
+"""Geometry: procedural blobby shapes, user meshes, and material parts.
+
+Everything here is numpy/trimesh; Mitsuba only sees the final arrays (meshes
+go to it from memory, never through temp files).
+
+Blobby shapes follow the spirit of the Blobby Shape Dataset: a sphere whose
+radius is r(u) = 1 + Σ a_lm Y_lm(u) for low orders l.  Because r is a positive
+function of direction, the surface is star-shaped about the origin and cannot
+self-intersect; amplitudes decay with l so it stays smooth.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from msps_render.errors import InputError
+from msps_render.scene.spec import ShapeSpec, SplitSpec
+
+MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
+
+
+@dataclass(frozen=True)
+class TriMesh:
+    """Plain triangle mesh: float32 vertices/normals (V,3), uint32 faces (F,3)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray
+
+
+# ------------------------------------------------------------ spherical harmonics
+def real_sh_basis(dirs: np.ndarray, lmax: int, lmin: int = 1) -> np.ndarray:
+    """Real spherical harmonics Y_lm(dirs) for lmin <= l <= lmax, shape (N, n_coeffs)."""
+    from scipy.special import sph_harm_y
+
+    x, y, z = dirs[:, 0], dirs[:, 1], dirs[:, 2]
+    theta = np.arccos(np.clip(z, -1, 1))
+    phi = np.arctan2(y, x)
+    cols = []
+    for l in range(lmin, lmax + 1):
+        for m in range(-l, l + 1):
+            Y = sph_harm_y(l, abs(m), theta, phi)
+            if m < 0:
+                cols.append(np.sqrt(2) * (-1) ** m * Y.imag)
+            elif m == 0:
+                cols.append(Y.real)
+            else:
+                cols.append(np.sqrt(2) * (-1) ** m * Y.real)
+    return np.stack(cols, axis=1)
+
+
+def n_sh_coeffs(lmax: int, lmin: int = 1) -> int:
+    return (lmax + 1) ** 2 - lmin ** 2
+
+
+def sample_blobby_coeffs(rng: np.random.Generator, lmax: int = 4, amplitude: float = 0.3) -> tuple[float, ...]:
+    """Random SH coefficients with a 1/l^2 spectrum so the shape stays smooth."""
+    c = []
+    for l in range(1, lmax + 1):
+        c.extend(rng.normal(0.0, amplitude / l ** 1.5, size=2 * l + 1))
+    return tuple(float(v) for v in c)
+
+
+def _lmax_from_count(n: int) -> int:
+    lmax = int(round(np.sqrt(n + 1))) - 1
+    if n_sh_coeffs(lmax) != n:
+        raise InputError("shape.sh_coeffs", f"{n} coefficients is not (lmax+1)^2-1 for any lmax")
+    return lmax
+
+
+@lru_cache(maxsize=8)
+def _icosphere(subdivisions: int):
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=subdivisions)
+    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+
+
+def blobby_mesh(coeffs: tuple[float, ...], subdivisions: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    dirs, faces = _icosphere(subdivisions)
+    r = np.ones(len(dirs))
+    if coeffs:
+        B = real_sh_basis(dirs, _lmax_from_count(len(coeffs)))
+        r = r + B @ np.asarray(coeffs)
+    # Keep radii positive (star-shaped => no self-intersection) with a soft floor.
+    r = np.maximum(r, 0.35 + 0.05 * np.tanh(r))
+    return dirs * r[:, None], faces
+
+
+# ----------------------------------------------------------------- user meshes
+def load_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a mesh with trimesh; reject files that do not give a usable triangle mesh."""
+    import trimesh
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "mesh file not found")
+    if p.suffix.lower() not in MESH_SUFFIXES:
+        raise InputError(p, f"unsupported mesh format '{p.suffix}' (supported: {', '.join(MESH_SUFFIXES)})")
+    try:
+        loaded = trimesh.load(str(p), force="mesh", process=False)
+    except Exception as e:  # trimesh raises many types on garbage
+        raise InputError(p, f"cannot parse mesh ({type(e).__name__}: {str(e)[:120]})") from None
+    if isinstance(loaded, trimesh.Scene):  # empty scene => no geometry
+        raise InputError(p, "mesh has no faces")
+    v = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    f = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
+    if f.size == 0 or v.size == 0:
+        raise InputError(p, "mesh has no faces")
+    if not np.isfinite(v).all():
+        raise InputError(p, f"mesh has {int((~np.isfinite(v)).any(axis=1).sum())} vertices with NaN/inf coordinates")
+    return v, f
+
+
+def clean_faces(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Drop degenerate (zero-area or repeated-index) faces."""
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    area2 = np.linalg.norm(cross, axis=1)
+    scale = max(float(np.ptp(v, axis=0).max()), 1e-12)
+    ok = (area2 > 1e-12 * scale * scale) & (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    return f[ok]
+
+
+def normalise(v: np.ndarray, radius: float = 1.0) -> np.ndarray:
+    """Centre on the bounding-box centre and scale into a sphere of `radius`."""
+    c = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    v = v - c
+    r = float(np.linalg.norm(v, axis=1).max())
+    return v * (radius / max(r, 1e-12))
+
+
+def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Area-weighted smooth vertex normals (why: MS-PS wants smooth shading normals)."""
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = 2*area
+    n = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(n, f[:, k], fn)
+    ln = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.where(ln > 0, ln, 1.0)
+
+
+def random_rotation(rng: np.random.Generator) -> tuple:
+    """Uniform random rotation matrix (as nested tuples for SceneSpec)."""
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.random(random_state=rng).as_matrix()
+    return tuple(tuple(float(x) for x in row) for row in R)
+
+
+def build_mesh(shape: ShapeSpec) -> TriMesh:
+    """ShapeSpec -> triangle mesh in the camera/world frame, inside radius `shape.radius`."""
+    if shape.kind == "blobby":
+        v, f = blobby_mesh(tuple(shape.sh_coeffs), shape.subdivisions)
+    elif shape.kind == "mesh":
+        v, f = load_mesh_file(shape.path)
+    else:
+        raise ValueError("the analytic sphere has no mesh; the renderer uses Mitsuba's sphere")
+    f = clean_faces(v, f)
+    if len(f) == 0:
+        raise InputError(shape.path or shape.name, "mesh has only degenerate faces")
+    used = np.unique(f)
+    remap = np.full(len(v), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    v, f = v[used], remap[f]
+    R = np.asarray(shape.rotation, dtype=np.float64)
+    v = normalise(v, shape.radius) @ R.T
+    n = vertex_normals(v, f)
+    return TriMesh(v.astype(np.float32), f.astype(np.uint32), n.astype(np.float32))
+
+
+# ------------------------------------------------------------------- parts
+def face_parts(mesh: TriMesh, split: SplitSpec) -> np.ndarray:
+    """Part index per face (int), spatially coherent by construction."""
+    F = len(mesh.faces)
+    if split.kind == "none" or split.n_parts == 1:
+        return np.zeros(F, dtype=np.int64)
+    c = mesh.vertices[mesh.faces].mean(axis=1).astype(np.float64)
+    if split.kind == "planes":
+        nrm = np.asarray(split.normals, dtype=np.float64)
+        off = np.asarray(split.offsets, dtype=np.float64)
+        side = (c @ nrm.T > off[None, :]).astype(np.int64)
+        # Binary code of the cells -> part ids; consecutive cells share a material cyclically.
+        code = (side * (1 << np.arange(side.shape[1]))).sum(axis=1)
+        return code % split.n_parts
+    # field: bin a smooth SH field evaluated at the face direction into equal-area quantiles
+    d = c / np.maximum(np.linalg.norm(c, axis=1, keepdims=True), 1e-12)
+    coeffs = np.asarray(split.field_coeffs)
+    vals = real_sh_basis(d, _lmax_from_count(len(coeffs))) @ coeffs
+    edges = np.quantile(vals, np.linspace(0, 1, split.n_parts + 1)[1:-1])
+    return np.searchsorted(edges, vals)
+
+
+def sample_split(rng: np.random.Generator, n_parts: int, kind: str = "field") -> SplitSpec:
+    if n_parts <= 1:
+        return SplitSpec()
+    if kind == "planes":
+        k = max(1, int(np.ceil(np.log2(n_parts))))
+        nrm = rng.normal(size=(k, 3))
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        off = rng.uniform(-0.3, 0.3, size=k)
+        return SplitSpec(kind="planes", n_parts=n_parts, normals=tuple(tuple(map(float, x)) for x in nrm),
+                         offsets=tuple(map(float, off)))
+    coeffs = sample_blobby_coeffs(rng, lmax=3, amplitude=1.0)
+    return SplitSpec(kind="field", n_parts=n_parts, field_coeffs=coeffs)
