@@ -26,6 +26,7 @@ class Frame:
     variant: str = ""
     per_light: np.ndarray | None = None  # (K, H, W, 3) float32, one image per light
     env_image: np.ndarray | None = None  # (H, W, 3) environment-only contribution
+    clean_image: np.ndarray | None = None  # radiance before a sensor model (noise/quantisation), if one ran
     meta: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
