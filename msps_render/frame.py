@@ -20,7 +20,7 @@ class Frame:
     image: np.ndarray  # (H, W, 3) float32 linear radiance
     normal: np.ndarray  # (H, W, 3) float32, camera frame
     mask: np.ndarray  # (H, W) bool, pixel centre hits the object
-    depth: np.ndarray  # (H, W) float32, distance along the view ray (0 = background)
+    depth: np.ndarray  # (H, W) float32, z-depth from the camera plane (0 = background)
     part: np.ndarray  # (H, W) int8, material part index (-1 = background)
     spec: SceneSpec
     variant: str = ""

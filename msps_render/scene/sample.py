@@ -161,3 +161,23 @@ def environment_for_ratio(cfg: EnvironmentConfig, light_irradiance: float, rng: 
     e = mean_irradiance_on_axis(img, (0.0, 0.0, 1.0), rot)
     scale = cfg.ratio * light_irradiance / max(e, 1e-12)
     return EnvSpec(source=cfg.source, scale=float(scale), rotation_deg=rot, seed=seed, ratio=cfg.ratio)
+
+
+def load_scene_config(path: str | Path) -> SceneConfig:
+    """Read a SceneConfig from TOML: the `[scene]` table if present, else the whole file."""
+    import tomllib
+
+    from msps_render.errors import format_validation_error
+
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except OSError as e:
+        raise InputError(p, f"cannot read config ({e.strerror})") from None
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(p, f"not valid TOML ({e})") from None
+    data = data.get("scene", data)
+    try:
+        return SceneConfig.model_validate(data)
+    except Exception as e:
+        raise InputError(p, format_validation_error(e)) from None
