@@ -16,7 +16,7 @@ from msps_render.scene.envmap import load_envmap, procedural_sky
 from msps_render.scene.lights import three_lights
 from msps_render.scene.materials import lambertian
 from msps_render.scene.sample import SceneConfig, sample_scene
-from msps_render.scene.spec import CameraSpec, EnvSpec, IntegratorSpec, SceneSpec, ShapeSpec
+from msps_render.scene.spec import CameraSpec, EnvSpec, IntegratorSpec, LightSpec, SceneSpec, ShapeSpec
 
 
 def small(spec: SceneSpec, res=48, spp=8) -> SceneSpec:
@@ -46,14 +46,22 @@ def test_every_analytic_family_renders(rgb_variant):
     assert np.isfinite(f.image).all() and f.image[f.mask].mean() > 0.01
 
 
-def test_user_mesh_is_normalised_and_renders(rgb_variant, shared_data):
-    spec = SceneSpec(shape=ShapeSpec(kind="mesh", path=str(shared_data / "meshes" / "ajc_spot.obj")),
-                     materials=(lambertian(),), lights=three_lights(), camera=CameraSpec(width=48, height=48),
-                     integrator=IntegratorSpec(spp=4))
+@pytest.mark.parametrize("name", ["ajc_spot.obj", "ajc_cow.obj", "ajc_teapot.obj"])
+def test_user_mesh_is_normalised_and_renders(rgb_variant, shared_data, name):
+    spec = SceneSpec(shape=ShapeSpec(kind="mesh", path=str(shared_data / "meshes" / name)),
+                     materials=(lambertian(),), lights=(LightSpec(direction=(0, 0, 1), rgb=(1, 1, 1)),),
+                     camera=CameraSpec(width=64, height=64), integrator=IntegratorSpec(kind="direct", spp=4))
     m = S.build_mesh(spec.shape)
     assert np.linalg.norm(m.vertices, axis=1).max() == pytest.approx(1.0, abs=1e-5)
     f = render_frame(spec, rgb_variant)
-    assert 0.1 < f.mask.mean() < 0.9
+    assert 0.05 < f.mask.mean() < 0.9
+    # Head-on light: a correctly oriented (outward) surface is lit almost everywhere it is seen,
+    # with radiance rho/pi * n_z (one-sided BSDFs render inward-wound meshes black).
+    lit = f.image[..., 0][f.mask] > 0
+    assert lit.mean() > 0.95, lit.mean()
+    expected = 0.8 / np.pi * f.normal[..., 2][f.mask]
+    ok = expected > 0.05
+    assert np.median(np.abs(f.image[..., 0][f.mask][ok] - expected[ok]) / expected[ok]) < 0.05
 
 
 @pytest.mark.parametrize("suffix", [".obj", ".ply", ".stl", ".glb"])
@@ -201,3 +209,13 @@ def test_cli_bad_inputs_one_line_no_output(tmp_path, shared_data):
         lines = [l for l in r.stderr.strip().splitlines() if l]
         assert len(lines) == 1 and msg in lines[0], r.stderr
         assert not out.exists()
+
+
+def test_inward_wound_mesh_is_reoriented(tmp_path):
+    import trimesh
+
+    box = trimesh.creation.icosphere(2)
+    p = tmp_path / "inside_out.ply"
+    trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False).export(p)
+    m = S.build_mesh(ShapeSpec(kind="mesh", path=str(p)))
+    assert ((m.normals * m.vertices).sum(1) > 0).all()

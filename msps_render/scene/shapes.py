@@ -112,7 +112,26 @@ def load_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(p, "mesh has no faces")
     if not np.isfinite(v).all():
         raise InputError(p, f"mesh has {int((~np.isfinite(v)).any(axis=1).sum())} vertices with NaN/inf coordinates")
-    return v, f
+    if f.min() < 0 or f.max() >= len(v):
+        raise InputError(p, "mesh faces index vertices that do not exist")
+    return orient_outward(v, f)
+
+
+def orient_outward(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Consistent winding with outward normals (why: Mitsuba BSDFs are one-sided,
+    so an inward-wound mesh would render black while its normals look fine)."""
+    import trimesh
+
+    m = trimesh.Trimesh(v, f, process=False, validate=False)
+    trimesh.repair.fix_winding(m)
+    faces = np.asarray(m.faces, dtype=np.int64)
+    # Signed volume about the centroid: negative => wound inward (also a fair
+    # heuristic for open meshes such as the teapot).
+    c = v.mean(axis=0)
+    a, b, d = v[faces[:, 0]] - c, v[faces[:, 1]] - c, v[faces[:, 2]] - c
+    if np.einsum("ij,ij->i", a, np.cross(b, d)).sum() < 0:
+        faces = faces[:, ::-1]
+    return v, np.ascontiguousarray(faces)
 
 
 def clean_faces(v: np.ndarray, f: np.ndarray) -> np.ndarray:
