@@ -119,3 +119,27 @@ def test_image_axes(rgb_variant, tilt, axis, sign):
     ny = f.normal[..., 1]
     assert nx[:, half:][f.mask[:, half:]].mean() > 0.3 and nx[:, :half][f.mask[:, :half]].mean() < -0.3
     assert ny[:half][f.mask[:half]].mean() > 0.3 and ny[half:][f.mask[half:]].mean() < -0.3
+
+
+def test_point_light_inverse_square(rgb_variant):
+    """A point light of intensity I at distance d gives irradiance I/d^2 at the sphere centre."""
+    d, I = 40.0, 2.0 * 40.0 ** 2
+    spec = sphere_scene([LightSpec(kind="point", direction=(0, 0, 1), distance=d, rgb=(I, I, I))], spp=16)
+    f = render_frame(spec, rgb_variant)
+    c = f.image[60:68, 60:68, 0].mean()
+    # surface point is at z = 0.95, so the distance is d - 0.95; n.l ~ 1 at the centre
+    expected = RHO / np.pi * I / (d - 0.95) ** 2 * f.normal[60:68, 60:68, 2].mean()
+    assert abs(c / expected - 1) < 0.005
+
+
+def test_perspective_camera_sees_sphere_with_camera_facing_normals(rgb_variant):
+    spec = sphere_scene([LightSpec(direction=(0, 0, 1), rgb=(E, E, E))], spp=4).model_copy(
+        update={"camera": CameraSpec(kind="perspective", fov_deg=30, distance=5.0, width=64, height=64)})
+    f = render_frame(spec, rgb_variant)
+    # a sphere of radius 0.95 at distance 5 subtends asin(0.95/5) = 10.95 deg of the 15 deg half-fov
+    r_px = np.tan(np.arcsin(0.95 / 5)) / np.tan(np.radians(15)) * 32
+    assert abs(f.mask.sum() / (np.pi * r_px ** 2) - 1) < 0.05
+
+    assert (f.normal[f.mask][:, 2] > 0).all()
+    assert abs(f.depth[32, 32] - (5 - 0.95)) < 0.01
+

@@ -123,7 +123,10 @@ def orient_outward(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray
     import trimesh
 
     m = trimesh.Trimesh(v, f, process=False, validate=False)
+    # Weld vertices split only by UV/normal seams so smooth normals do not crease there.
+    m.merge_vertices(merge_tex=True, merge_norm=True)
     trimesh.repair.fix_winding(m)
+    v = np.asarray(m.vertices, dtype=np.float64)
     faces = np.asarray(m.faces, dtype=np.int64)
     # Signed volume about the centroid: negative => wound inward (also a fair
     # heuristic for open meshes such as the teapot).
@@ -152,7 +155,12 @@ def normalise(v: np.ndarray, radius: float = 1.0) -> np.ndarray:
 
 
 def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Area-weighted smooth vertex normals (why: MS-PS wants smooth shading normals)."""
+    """Area-weighted smooth vertex normals.
+
+    Always recomputed, also for files that carry normals: formats disagree
+    (STL has none, OBJ normals are often split at UV seams), and the ground
+    truth must describe exactly the surface Mitsuba shades.
+    """
     fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = 2*area
     n = np.zeros_like(v)
     for k in range(3):
