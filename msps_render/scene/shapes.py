@@ -79,11 +79,19 @@ def _icosphere(subdivisions: int):
     return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
 
 
+@lru_cache(maxsize=8)
+def _icosphere_sh_basis(subdivisions: int, lmax: int) -> np.ndarray:
+    """SH basis at the icosphere vertices: fixed per level, so computed once per process."""
+    B = real_sh_basis(_icosphere(subdivisions)[0], lmax)
+    B.setflags(write=False)
+    return B
+
+
 def blobby_mesh(coeffs: tuple[float, ...], subdivisions: int = 5) -> tuple[np.ndarray, np.ndarray]:
     dirs, faces = _icosphere(subdivisions)
     r = np.ones(len(dirs))
     if coeffs:
-        B = real_sh_basis(dirs, _lmax_from_count(len(coeffs)))
+        B = _icosphere_sh_basis(subdivisions, _lmax_from_count(len(coeffs)))
         r = r + B @ np.asarray(coeffs)
     # Keep radii positive (star-shaped => no self-intersection) with a soft floor.
     r = np.maximum(r, 0.35 + 0.05 * np.tanh(r))
