@@ -98,3 +98,22 @@ def test_scene_validation_errors():
         LightSpec(direction=(0, 0, 0))
     with pytest.raises(Exception, match="point light needs a distance"):
         LightSpec(kind="point", direction=(0, 0, 1))
+
+
+@pytest.mark.parametrize("name", list(S.PRIMITIVES))
+def test_primitives_build_outward_and_normalised(name):
+    params = S.sample_primitive_params(name, np.random.default_rng(0))
+    m = S.build_mesh(ShapeSpec(kind="primitive", name=name, params=params))
+    assert np.linalg.norm(m.vertices, axis=1).max() == pytest.approx(1.0, abs=1e-5)
+    # outward: vertex normals agree with the face winding's normals on average
+    fn = np.cross(m.vertices[m.faces[:, 1]] - m.vertices[m.faces[:, 0]],
+                  m.vertices[m.faces[:, 2]] - m.vertices[m.faces[:, 0]])
+    agree = (fn * m.normals[m.faces].mean(1)).sum(1) > 0
+    assert agree.mean() > 0.99
+    # and point away from the centroid for most of the surface (all four are nearly star-shaped)
+    assert ((m.normals * (m.vertices - m.vertices.mean(0))).sum(1) > 0).mean() > 0.6
+
+
+def test_unknown_primitive_is_rejected():
+    with pytest.raises(Exception, match="unknown primitive 'donut'"):
+        ShapeSpec(kind="primitive", name="donut")

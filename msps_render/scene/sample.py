@@ -25,7 +25,8 @@ class _Cfg(BaseModel):
 
 
 class ShapeConfig(_Cfg):
-    source: Literal["blobby", "mesh", "sphere"] = "blobby"
+    source: Literal["blobby", "mesh", "sphere", "primitive"] = "blobby"
+    primitives: list[str] = Field(default_factory=lambda: ["torus", "capsule", "superellipsoid", "vase"])
     meshes: list[str] = Field(default_factory=list, description="paths or globs (source='mesh')")
     lmax: int = Field(4, ge=1, le=8)
     amplitude: float = Field(0.3, ge=0.0, le=0.6)
@@ -103,6 +104,10 @@ def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator) -> ShapeSpec:
             raise InputError("shape.meshes", "source 'mesh' needs at least one mesh path")
         path = paths[int(rng.integers(len(paths)))]
         return ShapeSpec(kind="mesh", name=Path(path).stem, path=str(Path(path).resolve()),
+                         rotation=rot, radius=cfg.radius)
+    if cfg.source == "primitive":
+        name = str(rng.choice(cfg.primitives))
+        return ShapeSpec(kind="primitive", name=name, params=S.sample_primitive_params(name, rng),
                          rotation=rot, radius=cfg.radius)
     if cfg.n_shapes:  # a fixed pool, like the 10-shape Blobby dataset (train/val split by index)
         idx = int(rng.integers(cfg.n_shapes))

@@ -98,6 +98,57 @@ def blobby_mesh(coeffs: tuple[float, ...], subdivisions: int = 5) -> tuple[np.nd
     return dirs * r[:, None], faces
 
 
+# ------------------------------------------------------------- primitives
+def _torus(p):
+    import trimesh
+
+    m = trimesh.creation.torus(major_radius=1.0, minor_radius=p.get("minor", 0.4), major_sections=96,
+                               minor_sections=48)
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def _capsule(p):
+    import trimesh
+
+    m = trimesh.creation.capsule(height=p.get("height", 1.0), radius=p.get("radius", 0.5), count=[48, 48])
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def _superellipsoid(p):
+    """Signed-power map of a sphere: exponent < 1 gives rounded boxes, > 1 pinched shapes."""
+    d, f = _icosphere(5)
+    e = np.array([p.get("ex", 0.6), p.get("ey", 0.6), p.get("ez", 0.6)])
+    scale = np.array([p.get("sx", 1.0), p.get("sy", 0.8), p.get("sz", 0.7)])
+    return np.sign(d) * np.abs(d) ** e * scale, f
+
+
+def _vase(p):
+    """Surface of revolution of a smooth wavy profile (concave regions => cast shadows)."""
+    import trimesh
+
+    z = np.linspace(-1.0, 1.0, 96)
+    r = p.get("base", 0.45) + p.get("wave", 0.18) * np.sin(np.pi * p.get("freq", 1.5) * z + p.get("phase", 0.0))
+    r = r * np.sqrt(np.clip(1 - z ** 2, 0, None)) ** 0.3  # close the ends smoothly
+    r[0] = r[-1] = 0.0
+    m = trimesh.creation.revolve(np.stack([r, z], 1), sections=96)
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+PRIMITIVES = {"torus": _torus, "capsule": _capsule, "superellipsoid": _superellipsoid, "vase": _vase}
+
+
+def sample_primitive_params(name: str, rng: np.random.Generator) -> dict[str, float]:
+    if name == "torus":
+        return {"minor": float(rng.uniform(0.25, 0.5))}
+    if name == "capsule":
+        return {"height": float(rng.uniform(0.5, 1.5)), "radius": float(rng.uniform(0.35, 0.6))}
+    if name == "superellipsoid":
+        return {k: float(rng.uniform(0.4, 1.6)) for k in ("ex", "ey", "ez")} | {
+            k: float(rng.uniform(0.6, 1.0)) for k in ("sx", "sy", "sz")}
+    return {"base": float(rng.uniform(0.35, 0.55)), "wave": float(rng.uniform(0.08, 0.22)),
+            "freq": float(rng.uniform(1.0, 2.5)), "phase": float(rng.uniform(0, 2 * np.pi))}
+
+
 # ----------------------------------------------------------------- user meshes
 def load_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Read a mesh with trimesh; reject files that do not give a usable triangle mesh."""
@@ -191,6 +242,8 @@ def build_mesh(shape: ShapeSpec) -> TriMesh:
         v, f = blobby_mesh(tuple(shape.sh_coeffs), shape.subdivisions)
     elif shape.kind == "mesh":
         v, f = load_mesh_file(shape.path)
+    elif shape.kind == "primitive":
+        v, f = orient_outward(*PRIMITIVES[shape.name](dict(shape.params)))
     else:
         raise ValueError("the analytic sphere has no mesh; the renderer uses Mitsuba's sphere")
     f = clean_faces(v, f)

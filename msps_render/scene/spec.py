@@ -104,20 +104,28 @@ class MaterialSpec(_Strict):
 
 # --------------------------------------------------------------------- shapes
 class ShapeSpec(_Strict):
-    """Geometry. `blobby`: radially displaced sphere; `mesh`: a file; `sphere`: analytic."""
+    """Geometry. `blobby`: radially displaced sphere; `mesh`: a file; `sphere`: analytic;
+    `primitive`: a procedural non-blobby shape (torus, capsule, superellipsoid, vase) named by
+    `name` with `params`, for test sets of shapes unlike the training blobs."""
 
-    kind: Literal["blobby", "mesh", "sphere"]
+    kind: Literal["blobby", "mesh", "sphere", "primitive"]
     name: str = ""
     path: str | None = None  # mesh only
     sh_coeffs: tuple[float, ...] = ()  # blobby: real SH coefficients, l = 1..lmax
     subdivisions: int = Field(5, ge=1, le=7)  # blobby icosphere level
     rotation: tuple[Vec3, Vec3, Vec3] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     radius: float = Field(1.0, gt=0, le=1.0)  # scale of the normalised shape
+    params: dict[str, float] = Field(default_factory=dict)  # primitive only
 
     @model_validator(mode="after")
     def _check(self) -> "ShapeSpec":
         if self.kind == "mesh" and not self.path:
             raise ValueError("shape kind 'mesh' needs a path")
+        if self.kind == "primitive":
+            from msps_render.scene.shapes import PRIMITIVES
+
+            if self.name not in PRIMITIVES:
+                raise ValueError(f"unknown primitive '{self.name}' (known: {', '.join(PRIMITIVES)})")
         return self
 
 
