@@ -1,0 +1,177 @@
+"""`DatasetConfig`: a dataset preset (TOML) validated with clear, named errors.
+
+A preset is a `[dataset]` table (shards, frames, patches, storage) plus a
+`[scene]` table mirroring `SceneConfig`, and optionally a `[sweep]` that
+renders the same scenes under several values of one setting (e.g. the
+environment-light ratio or the slant), one condition each.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from msps_render.errors import InputError, closest, format_validation_error
+from msps_render.scene.sample import SceneConfig
+
+PRESET_DIR = Path(__file__).resolve().parents[2] / "scenes"
+
+
+class _Cfg(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class PatchConfig(_Cfg):
+    size: int = Field(40, ge=8, le=512)
+    stride: int = Field(20, ge=1, le=512)
+    min_coverage: float = Field(0.5, ge=0.0, le=1.0, description="fraction of object pixels to keep a patch")
+
+
+class StorageConfig(_Cfg):
+    compression: Literal["lzf", "gzip", "none"] = "lzf"
+    image_dtype: Literal["float16", "float32"] = "float16"
+    normal_dtype: Literal["float16", "float32"] = "float16"
+    store_frames: bool = Field(False, description="also keep whole frames (test sets)")
+
+
+class DatasetSection(_Cfg):
+    name: str = "dataset"
+    seed: int = Field(0, ge=0)
+    n_shards: int = Field(4, ge=1, le=100000)
+    frames_per_shard: int = Field(8, ge=1, le=100000)
+    patches: PatchConfig = PatchConfig()
+    storage: StorageConfig = StorageConfig()
+
+
+class SweepConfig(_Cfg):
+    key: str
+    values: list[Any] = Field(min_length=1)
+
+
+class DatasetConfig(_Cfg):
+    dataset: DatasetSection = DatasetSection()
+    scene: SceneConfig = SceneConfig()
+    sweep: SweepConfig | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> "DatasetConfig":
+        p = self.dataset.patches
+        c = self.scene.camera
+        if p.size > min(c.width, c.height):
+            raise ValueError(f"patch size {p.size} exceeds the frame size {c.width}x{c.height}")
+        if self.sweep is not None:
+            for v in self.sweep.values:  # every condition must itself validate
+                condition_config(self, v)
+        return self
+
+    def conditions(self) -> list[tuple[str, Any]]:
+        """(name, value) per condition; one unnamed condition without a sweep."""
+        if self.sweep is None:
+            return [("", None)]
+        leaf = self.sweep.key.split(".")[-1]
+        return [(f"{leaf}={v}", v) for v in self.sweep.values]
+
+
+def _set_path(data: dict, dotted: str, value) -> None:
+    keys = dotted.split(".")
+    d = data
+    for k in keys[:-1]:
+        d = d.setdefault(k, {})
+        if not isinstance(d, dict):
+            raise InputError(dotted, f"'{k}' is not a table")
+    d[keys[-1]] = value
+
+
+def condition_config(cfg: DatasetConfig, value) -> DatasetConfig:
+    """The config of one sweep condition (the swept key set to `value`)."""
+    data = cfg.model_dump(mode="json")
+    data.pop("sweep", None)
+    _set_path(data, _qualify(cfg.sweep.key), value)
+    return DatasetConfig.model_validate(data)
+
+
+def _qualify(key: str) -> str:
+    """`lights.slant_deg` is shorthand for `scene.lights.slant_deg`."""
+    top = key.split(".")[0]
+    if top in DatasetConfig.model_fields:
+        return key
+    if top in SceneConfig.model_fields:
+        return f"scene.{key}"
+    if top in DatasetSection.model_fields:
+        return f"dataset.{key}"
+    return key
+
+
+def _unknown_keys(data: Any, model: type[BaseModel], prefix: str = "") -> list[str]:
+    """Walk raw config data against the models; describe every unknown key with a suggestion."""
+    out = []
+    if not isinstance(data, dict):
+        return out
+    fields = model.model_fields
+    for k, v in data.items():
+        if k not in fields:
+            out.append(f"unknown key '{prefix}{k}'{closest(k, fields)}")
+            continue
+        ann = fields[k].annotation
+        for cand in (ann, *getattr(ann, "__args__", ())):
+            if isinstance(cand, type) and issubclass(cand, BaseModel):
+                out += _unknown_keys(v, cand, f"{prefix}{k}.")
+                break
+    return out
+
+
+def _coerce(text: str):
+    """`--set` values are TOML literals (30, 0.5, true, [0, 120], "x"); bare words are strings."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def resolve_preset(path_or_name: str | Path) -> Path:
+    p = Path(path_or_name)
+    if p.is_file():
+        return p
+    cand = PRESET_DIR / f"{path_or_name}.toml"
+    if cand.is_file():
+        return cand
+    known = sorted(q.stem for q in PRESET_DIR.glob("*.toml")) if PRESET_DIR.is_dir() else []
+    raise InputError(p, f"config file not found (presets: {', '.join(known) or 'none'})")
+
+
+def load_config(path_or_name: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> DatasetConfig:
+    """Read a preset name or TOML path, apply `key=value` overrides, validate."""
+    p = resolve_preset(path_or_name)
+    try:
+        data = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(p, f"not valid TOML ({e})") from None
+    for ov in overrides:
+        if "=" not in ov:
+            raise InputError(f"--set {ov}", "expected key=value")
+        k, v = ov.split("=", 1)
+        _set_path(data, _qualify(k.strip()), _coerce(v.strip()))
+    return validate_config(data, str(p))
+
+
+def validate_config(data: dict, source: str = "<config>") -> DatasetConfig:
+    unknown = _unknown_keys(data, DatasetConfig)
+    if unknown:
+        raise InputError(source, "; ".join(unknown))
+    try:
+        return DatasetConfig.model_validate(data)
+    except Exception as e:
+        raise InputError(source, format_validation_error(e)) from None
+
+
+def config_json(cfg: DatasetConfig) -> str:
+    return json.dumps(cfg.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+
+
+def config_hash(cfg: DatasetConfig) -> str:
+    """sha256 of the canonical resolved config: identifies what a dataset directory contains."""
+    return hashlib.sha256(config_json(cfg).encode()).hexdigest()

@@ -1,0 +1,72 @@
+"""Contact sheet of a dataset (tone-mapped images, normal maps, masks) plus distribution plots."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from msps_render.pipeline.manifest import SHARD_DIR, read_manifest
+from msps_render.preview import normal_to_rgb8, tonemap
+
+
+def preview_dataset(root: str | Path, out: str | Path, n: int = 8, seed: int = 0) -> Path:
+    import h5py
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    root, out = Path(root), Path(out)
+    m = read_manifest(root)
+    names = sorted(m["shards"]) if m else sorted(p.name for p in (root / SHARD_DIR).glob("shard-*.h5"))
+    rng = np.random.default_rng(seed)
+    samples, slants, mats, cover, objects, conds = [], [], [], [], [], []
+    for name in names:
+        with h5py.File(root / SHARD_DIR / name, "r") as h:
+            N = len(h["patches/mask"])
+            msk = h["patches/mask"][()]
+            cover.extend(msk.reshape(N, -1).mean(1).tolist())
+            slants.extend(h["frames/slant_deg"][()].tolist())
+            mats.extend(s for ms in h["frames/materials"].asstr()[()] for s in ms.split(";"))
+            objects.extend(h["frames/object"].asstr()[()].tolist())
+            conds.extend(h["frames/condition"].asstr()[()].tolist())
+            if "frames/image" in h and len(samples) < n:
+                for i in range(min(len(h["frames/image"]), n - len(samples))):
+                    samples.append((h["frames/image"][i], h["frames/normal"][i], h["frames/mask"][i].astype(bool)))
+            elif N and len(samples) < n:
+                for i in sorted(rng.choice(N, size=min(N, max(1, n // max(1, len(names)))), replace=False)):
+                    samples.append((h["patches/image"][i].astype(np.float32),
+                                    h["patches/normal"][i].astype(np.float32), msk[i].astype(bool)))
+    samples = samples[:n]
+    fig = plt.figure(figsize=(2.0 * max(len(samples), 4), 9.5))
+    gs = fig.add_gridspec(4, max(len(samples), 4), height_ratios=[1, 1, 1, 1.4])
+    for j, (img, nrm, msk) in enumerate(samples):
+        for r, (pic, title) in enumerate(((tonemap(img, msk), "image"), (normal_to_rgb8(nrm, msk), "normal"),
+                                          (msk.astype(np.uint8) * 255, "mask"))):
+            ax = fig.add_subplot(gs[r, j])
+            ax.imshow(pic, cmap="gray" if r == 2 else None, interpolation="nearest")
+            ax.set_xticks([]), ax.set_yticks([])
+            if j == 0:
+                ax.set_ylabel(title)
+    k = max(len(samples), 4)
+    w = k // 3
+    ax = fig.add_subplot(gs[3, 0:w])
+    ax.hist(slants, bins=20, color="C0")
+    ax.set_title("slant (deg) per frame")
+    ax = fig.add_subplot(gs[3, w:2 * w])
+    u, c = np.unique(mats, return_counts=True) if mats else ([], [])
+    ax.barh(list(u)[:15], list(c)[:15], color="C1")
+    ax.set_title("materials")
+    ax.tick_params(axis="y", labelsize=6)
+    ax = fig.add_subplot(gs[3, 2 * w:])
+    ax.hist(cover, bins=20, range=(0, 1), color="C2")
+    ax.set_title(f"patch mask coverage ({len(cover)} patches)")
+    fig.suptitle(f"{root.name}: {len(names)} shards, {len(objects)} frames, {len(cover)} patches"
+                 + (f", conditions: {', '.join(sorted(set(conds)))}" if any(conds) else ""))
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.tmp.png")
+    fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+    tmp.replace(out)
+    return out
