@@ -1,0 +1,223 @@
+"""Training-side access to a dataset directory: `PatchDataset` (torch) and whole-frame iteration.
+
+h5py handles are opened lazily in whichever process reads (DataLoader workers
+fork/spawn after construction, and HDF5 handles must not cross processes).
+`__getitems__` reads a whole batch from each shard with one sorted
+fancy-index read per array, and `ShardBatchSampler` keeps each batch inside one
+shard, so random access costs one HDF5 read per batch instead of per patch.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset, Sampler
+
+from msps_render.errors import InputError
+from msps_render.pipeline.manifest import SHARD_DIR, read_manifest
+
+
+def _shard_list(root: Path, condition: str | None) -> list[tuple[Path, int, str]]:
+    m = read_manifest(root)
+    if m is None:
+        raise InputError(root, "no dataset.json here (not a dataset directory)")
+    if not m.get("complete", False):
+        raise InputError(root, "dataset is incomplete (finish it with `msps render ... --resume`)")
+    out = []
+    for name in sorted(m["shards"]):
+        e = m["shards"][name]
+        if condition is not None and e.get("condition", "") != condition:
+            continue
+        out.append((root / SHARD_DIR / name, int(e["n_patches"]), e.get("condition", "")))
+    return out
+
+
+class PatchDataset(Dataset):
+    """Patches of a dataset directory as dicts of tensors:
+
+    image (3,P,P) float32 linear radiance, normal (3,P,P), mask (1,P,P) float32,
+    light_dirs (3,3), crosstalk (3,3), plus shard/frame/index ids.
+    """
+
+    def __init__(self, root: str | Path, condition: str | None = None, cache: bool = False,
+                 verify: bool = False):
+        self.root = Path(root)
+        if verify:
+            from msps_render.pipeline.verify import verify_dataset
+
+            bad = verify_dataset(self.root)
+            if bad:
+                name, probs = sorted(bad.items())[0]
+                raise InputError(self.root / SHARD_DIR / name, f"fails verification: {'; '.join(probs)}")
+        self.shards = _shard_list(self.root, condition)
+        counts = np.array([n for _, n, _ in self.shards], dtype=np.int64)
+        self.offsets = np.concatenate([[0], np.cumsum(counts)])
+        self._handles: dict[int, object] = {}
+        self._pid = None
+        self._meta = [self._read_meta(p) for p, _, _ in self.shards]
+        self._cache = [self._read_all(p) for p, _, _ in self.shards] if cache else None
+
+    # -------------------------------------------------------------- internals
+    @staticmethod
+    def _read_meta(path: Path) -> dict:
+        import h5py
+
+        with h5py.File(path, "r") as h:
+            return {"frame_index": h["patches/frame_index"][()], "light_dirs": h["frames/light_dirs"][()],
+                    "crosstalk": h["frames/crosstalk"][()]}
+
+    @staticmethod
+    def _read_all(path: Path) -> dict:
+        import h5py
+
+        with h5py.File(path, "r") as h:
+            return {k: h[f"patches/{k}"][()] for k in ("image", "normal", "mask")}
+
+    def _h(self, s: int):
+        import h5py
+
+        if self._pid != os.getpid():  # new process (DataLoader worker): reopen everything
+            self._handles, self._pid = {}, os.getpid()
+        if s not in self._handles:
+            self._handles[s] = h5py.File(self.shards[s][0], "r")
+        return self._handles[s]
+
+    def locate(self, idx: int) -> tuple[int, int]:
+        if idx < 0:
+            idx += len(self)
+        if not 0 <= idx < len(self):
+            raise IndexError(idx)
+        s = int(np.searchsorted(self.offsets, idx, side="right") - 1)
+        return s, int(idx - self.offsets[s])
+
+    def _arrays(self, s: int, local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self._cache is not None:
+            c = self._cache[s]
+            return c["image"][local], c["normal"][local], c["mask"][local]
+        h = self._h(s)
+        order = np.argsort(local)
+        uniq, inv = np.unique(local[order], return_inverse=True)
+        sel = uniq.tolist()
+        img, nrm, msk = (h[f"patches/{k}"][sel] for k in ("image", "normal", "mask"))
+        back = np.empty_like(order)
+        back[order] = np.arange(len(order))
+        take = inv[back]
+        return img[take], nrm[take], msk[take]
+
+    def _pack(self, s: int, local: np.ndarray) -> dict:
+        img, nrm, msk = self._arrays(s, local)
+        meta = self._meta[s]
+        f = meta["frame_index"][local]
+        return {
+            "image": torch.from_numpy(np.ascontiguousarray(img.transpose(0, 3, 1, 2), dtype=np.float32)),
+            "normal": torch.from_numpy(np.ascontiguousarray(nrm.transpose(0, 3, 1, 2), dtype=np.float32)),
+            "mask": torch.from_numpy(msk[:, None].astype(np.float32)),
+            "light_dirs": torch.from_numpy(meta["light_dirs"][f].astype(np.float32)),
+            "crosstalk": torch.from_numpy(meta["crosstalk"][f].astype(np.float32)),
+            "shard": torch.full((len(local),), s, dtype=torch.int64),
+            "frame": torch.from_numpy(f.astype(np.int64)),
+            "index": torch.from_numpy(local.astype(np.int64) + self.offsets[s]),
+        }
+
+    # ---------------------------------------------------------------- Dataset
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def __getitem__(self, idx: int) -> dict:
+        s, j = self.locate(int(idx))
+        return {k: v[0] for k, v in self._pack(s, np.array([j])).items()}
+
+    def __getitems__(self, indices: list[int]) -> list[dict]:
+        """Batched fetch (used by DataLoader's auto-batching): one read per shard per array."""
+        idx = np.asarray(indices, dtype=np.int64)
+        shard = np.searchsorted(self.offsets, idx, side="right") - 1
+        out: list[dict | None] = [None] * len(idx)
+        for s in np.unique(shard):
+            pos = np.nonzero(shard == s)[0]
+            packed = self._pack(int(s), idx[pos] - self.offsets[s])
+            for r, p in enumerate(pos):
+                out[p] = {k: v[r] for k, v in packed.items()}
+        return out  # type: ignore[return-value]
+
+    def close(self) -> None:
+        for h in self._handles.values():
+            h.close()
+        self._handles = {}
+
+
+class ShardBatchSampler(Sampler[list[int]]):
+    """Batches drawn from one shard at a time (shards and patches shuffled per epoch).
+
+    Why: a batch from one shard is one HDF5 read per array; global shuffling
+    across shards would turn every batch into many small reads.
+    """
+
+    def __init__(self, dataset: PatchDataset, batch_size: int, shuffle: bool = True, seed: int = 0,
+                 drop_last: bool = False):
+        self.ds, self.bs, self.shuffle, self.seed, self.drop_last = dataset, batch_size, shuffle, seed, drop_last
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def _batches(self) -> list[list[int]]:
+        rng = np.random.default_rng([self.seed, self.epoch])
+        batches = []
+        for s in range(len(self.ds.shards)):
+            lo, hi = int(self.ds.offsets[s]), int(self.ds.offsets[s + 1])
+            idx = np.arange(lo, hi)
+            if self.shuffle:
+                rng.shuffle(idx)
+            for b in range(0, len(idx), self.bs):
+                chunk = idx[b:b + self.bs]
+                if len(chunk) == self.bs or not self.drop_last:
+                    batches.append(chunk.tolist())
+        if self.shuffle:
+            order = rng.permutation(len(batches))
+            batches = [batches[i] for i in order]
+        return batches
+
+    def __iter__(self) -> Iterator[list[int]]:
+        yield from self._batches()
+
+    def __len__(self) -> int:
+        return len(self._batches())
+
+
+@dataclass
+class FrameRecordView:
+    """A whole test frame with its calibration, for per-object evaluation and prediction."""
+
+    image: np.ndarray
+    normal: np.ndarray
+    mask: np.ndarray
+    light_dirs: np.ndarray
+    crosstalk: np.ndarray
+    object: str
+    materials: str
+    condition: str
+    shard: str
+    index: int
+
+
+def iter_frames(root: str | Path, condition: str | None = None) -> Iterator[FrameRecordView]:
+    """Whole frames of a dataset stored with `store_frames = true`."""
+    import h5py
+
+    root = Path(root)
+    shards = _shard_list(root, condition)
+    for path, _, _ in shards:
+        with h5py.File(path, "r") as h:
+            if "frames/image" not in h:
+                raise InputError(path, "shard has no whole frames (render the preset with store_frames = true)")
+            objs = h["frames/object"].asstr()[()]
+            mats = h["frames/materials"].asstr()[()]
+            conds = h["frames/condition"].asstr()[()]
+            for i in range(len(h["frames/image"])):
+                yield FrameRecordView(h["frames/image"][i], h["frames/normal"][i], h["frames/mask"][i].astype(bool),
+                                      h["frames/light_dirs"][i], h["frames/crosstalk"][i], str(objs[i]),
+                                      str(mats[i]), str(conds[i]), path.name, i)
