@@ -18,6 +18,7 @@ from msps_render.scene import lights as L
 from msps_render.scene import shapes as S
 from msps_render.scene.materials import FAMILIES, sample_analytic
 from msps_render.scene.spec import CameraSpec, EnvSpec, IntegratorSpec, SceneSpec, ShapeSpec
+from msps_render.spectral.config import SensorConfig, SpectralConfig
 
 
 class _Cfg(BaseModel):
@@ -92,6 +93,11 @@ class SceneConfig(_Cfg):
     environment: EnvironmentConfig = EnvironmentConfig()
     camera: CameraSpec = CameraSpec()
     integrator: IntegratorSpec = IntegratorSpec()
+    # spectral mode / sensor (issue 4): `spectral` is used when mode == "spectral" (defaults if
+    # absent); `sensor` is applied after rendering by `msps_render.spectral.sensor.apply_sensor`.
+    mode: Literal["rgb", "spectral"] = "rgb"
+    spectral: SpectralConfig | None = None
+    sensor: SensorConfig | None = None
 
 
 def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator) -> ShapeSpec:
@@ -140,30 +146,61 @@ def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = 
     materials = _sample_materials(cfg.materials, n, rng)
     split = S.sample_split(rng, n, cfg.materials.split)
     lc = cfg.lights
-    lights = L.three_lights(lc.slant_deg, lc.tilts_deg, lc.crosstalk, lc.irradiance, lc.kind, lc.distance,
+    crosstalk, spectra, camera_response = lc.crosstalk, None, None
+    if cfg.mode == "spectral":  # effective crosstalk of the light spectra x camera (issue 4)
+        from msps_render.spectral.crosstalk import effective_crosstalk
+
+        sc = cfg.spectral or SpectralConfig()
+        if len(sc.lights) != len(lc.tilts_deg):
+            raise InputError("scene.spectral.lights", f"{len(sc.lights)} light spectra for "
+                                                      f"{len(lc.tilts_deg)} light tilts")
+        spectra, camera_response = sc.lights, sc.camera
+        crosstalk = effective_crosstalk(sc.lights, sc.camera)
+    lights = L.three_lights(lc.slant_deg, lc.tilts_deg, crosstalk, lc.irradiance, lc.kind, lc.distance,
                             rng=rng, jitter_deg=lc.jitter_deg, intensity_jitter=lc.intensity_jitter)
+    if spectra is not None:
+        lights = tuple(l.model_copy(update={"spectrum": s}) for l, s in zip(lights, spectra))
     env = None
     if cfg.environment.enabled and cfg.environment.ratio > 0:
-        env = environment_for_ratio(cfg.environment, lc.irradiance, rng)
+        env = environment_for_ratio(cfg.environment, lights_plane_irradiance(lights), rng)
     integ = cfg.integrator.model_copy(update={"seed": int(rng.integers(2**31 - 1))})
     return SceneSpec(shape=shape, split=split, materials=materials, lights=lights, environment=env,
-                     camera=cfg.camera, integrator=integ,
-                     crosstalk=tuple(tuple(float(x) for x in row) for row in np.asarray(lc.crosstalk)),
+                     camera=cfg.camera, integrator=integ, mode=cfg.mode, camera_response=camera_response,
+                     crosstalk=tuple(tuple(float(x) for x in row) for row in np.asarray(crosstalk)),
                      seed=seed)
+
+
+def lights_plane_irradiance(lights) -> float:
+    """Channel-summed irradiance of all lights on a camera-facing plane at the origin.
+
+    `LightSpec.rgb` is each light's camera response on a white reflector at normal
+    incidence (both modes), so this is Σ_k sum(rgb_k)·max(0, l_k·z) (point lights: /d²).
+    """
+    total = 0.0
+    for l in lights:
+        e = sum(l.rgb) * max(0.0, l.direction[2])
+        if l.kind == "point":
+            e /= l.distance ** 2
+        total += e
+    return total
 
 
 def environment_for_ratio(cfg: EnvironmentConfig, light_irradiance: float, rng: np.random.Generator) -> EnvSpec:
     """Scale the env map so its irradiance on a camera-facing plane is `ratio` x the lights'.
 
-    The reference is the mean over lights of each light's (channel-summed)
-    irradiance at normal incidence, i.e. `light_irradiance`.
+    Both sides are channel-summed irradiance on a plane facing the camera (+z):
+    `light_irradiance` is `lights_plane_irradiance(lights)` (all coloured lights
+    together), the env's is `irradiance_on_axis(map, +z).sum() * scale`.  So on a
+    white camera-facing plane the env adds exactly `ratio` x the lights' image
+    energy (docs/physics.md).  Spectral mode keeps this meaning (the renderer
+    corrects the scale for RGB->spectrum upsampling).
     """
-    from msps_render.scene.envmap import envmap_pixels, mean_irradiance_on_axis
+    from msps_render.scene.envmap import envmap_pixels, irradiance_on_axis
 
     rot = float(rng.uniform(0, 360)) if cfg.random_rotation else 0.0
     seed = int(rng.integers(2**31 - 1))
     img = envmap_pixels(cfg.source, seed)
-    e = mean_irradiance_on_axis(img, (0.0, 0.0, 1.0), rot)
+    e = float(irradiance_on_axis(img, (0.0, 0.0, 1.0), rot).sum())
     scale = cfg.ratio * light_irradiance / max(e, 1e-12)
     return EnvSpec(source=cfg.source, scale=float(scale), rotation_deg=rot, seed=seed, ratio=cfg.ratio)
 
