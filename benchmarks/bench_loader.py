@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from msps_render.data import PatchDataset, ShardBatchSampler
+from msps_render.data import PatchDataset, ShardBatchSampler, make_loader
 
 
 def rate(loader, epochs: int) -> float:
@@ -55,14 +55,14 @@ def main():
     torch.set_num_threads(1)
     ds = PatchDataset(a.data)
     rows = []
+    dl = DataLoader(ds, batch_sampler=ShardBatchSampler(ds, a.batch, seed=0), num_workers=0)
+    rows.append(("PatchDataset via default collate (per-item dicts), 0 workers", rate(dl, a.epochs)))
     for workers in (0, 2):
-        dl = DataLoader(ds, batch_sampler=ShardBatchSampler(ds, a.batch, seed=0), num_workers=workers,
-                        persistent_workers=workers > 0)
+        dl = make_loader(ds, a.batch, num_workers=workers)
         rate(dl, 1)  # warm-up (worker start, page cache)
-        rows.append((f"PatchDataset, {workers} workers", rate(dl, a.epochs)))
+        rows.append((f"make_loader(PatchDataset), {workers} workers", rate(dl, a.epochs)))
     cached = PatchDataset(a.data, cache=True)
-    dl = DataLoader(cached, batch_sampler=ShardBatchSampler(cached, a.batch, seed=0), num_workers=0)
-    rows.append(("PatchDataset(cache=True), 0 workers", rate(dl, a.epochs)))
+    rows.append(("make_loader(PatchDataset(cache=True)), 0 workers", rate(make_loader(cached, a.batch), a.epochs)))
     rows.append(("numpy arrays in memory (floor)", memory_rate(cached, a.batch, a.epochs)))
     print(f"{len(ds)} patches, batch {a.batch}, {a.epochs} epochs")
     print("| loader | patches/s |")

@@ -43,6 +43,8 @@ class PatchDataset(Dataset):
     light_dirs (3,3), crosstalk (3,3), plus shard/frame/index ids.
     """
 
+    decoded_shards = 8  # LRU size of decoded shards per process (~12 MB each for 8x128^2 frames)
+
     def __init__(self, root: str | Path, condition: str | None = None, cache: bool = False,
                  verify: bool = False):
         self.root = Path(root)
@@ -57,6 +59,7 @@ class PatchDataset(Dataset):
         counts = np.array([n for _, n, _ in self.shards], dtype=np.int64)
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
         self._handles: dict[int, object] = {}
+        self._decoded: dict[int, dict] = {}
         self._pid = None
         self._meta = [self._read_meta(p) for p, _, _ in self.shards]
         self._cache = [self._read_all(p) for p, _, _ in self.shards] if cache else None
@@ -81,7 +84,7 @@ class PatchDataset(Dataset):
         import h5py
 
         if self._pid != os.getpid():  # new process (DataLoader worker): reopen everything
-            self._handles, self._pid = {}, os.getpid()
+            self._handles, self._decoded, self._pid = {}, {}, os.getpid()
         if s not in self._handles:
             self._handles[s] = h5py.File(self.shards[s][0], "r")
         return self._handles[s]
@@ -97,16 +100,20 @@ class PatchDataset(Dataset):
     def _arrays(self, s: int, local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if self._cache is not None:
             c = self._cache[s]
-            return c["image"][local], c["normal"][local], c["mask"][local]
-        h = self._h(s)
-        order = np.argsort(local)
-        uniq, inv = np.unique(local[order], return_inverse=True)
-        sel = uniq.tolist()
-        img, nrm, msk = (h[f"patches/{k}"][sel] for k in ("image", "normal", "mask"))
-        back = np.empty_like(order)
-        back[order] = np.arange(len(order))
-        take = inv[back]
-        return img[take], nrm[take], msk[take]
+        else:
+            c = self._decoded.get(s)
+            if c is None:
+                # Decode the whole shard once: h5py fancy indexing costs ~0.3 ms per index and
+                # re-reading spans re-decompresses them; ShardBatchSampler visits a shard's batches
+                # close together, so a small LRU of decoded shards serves them all.
+                h = self._h(s)
+                c = {k: h[f"patches/{k}"][()] for k in ("image", "normal", "mask")}
+                self._decoded[s] = c
+                while len(self._decoded) > self.decoded_shards:
+                    self._decoded.pop(next(iter(self._decoded)))
+            else:
+                self._decoded[s] = self._decoded.pop(s)  # most recently used
+        return c["image"][local], c["normal"][local], c["mask"][local]
 
     def _pack(self, s: int, local: np.ndarray) -> dict:
         img, nrm, msk = self._arrays(s, local)
@@ -131,6 +138,20 @@ class PatchDataset(Dataset):
         s, j = self.locate(int(idx))
         return {k: v[0] for k, v in self._pack(s, np.array([j])).items()}
 
+    def get_batch(self, indices) -> dict:
+        """A batched dict for `indices` (any order, any shards): one read per shard per array."""
+        idx = np.asarray(indices, dtype=np.int64)
+        shard = np.searchsorted(self.offsets, idx, side="right") - 1
+        parts, where = [], []
+        for s in np.unique(shard):
+            pos = np.nonzero(shard == s)[0]
+            parts.append(self._pack(int(s), idx[pos] - self.offsets[s]))
+            where.append(pos)
+        if len(parts) == 1:
+            return parts[0]
+        order = np.argsort(np.concatenate(where))
+        return {k: torch.cat([p[k] for p in parts])[order] for k in parts[0]}
+
     def __getitems__(self, indices: list[int]) -> list[dict]:
         """Batched fetch (used by DataLoader's auto-batching): one read per shard per array."""
         idx = np.asarray(indices, dtype=np.int64)
@@ -149,16 +170,51 @@ class PatchDataset(Dataset):
         self._handles = {}
 
 
-class ShardBatchSampler(Sampler[list[int]]):
-    """Batches drawn from one shard at a time (shards and patches shuffled per epoch).
+class _BatchView(Dataset):
+    """Lets a DataLoader fetch whole batches via `get_batch` (no per-item split + re-collate)."""
 
-    Why: a batch from one shard is one HDF5 read per array; global shuffling
-    across shards would turn every batch into many small reads.
+    def __init__(self, ds: PatchDataset):
+        self.ds = ds
+
+    def __len__(self) -> int:
+        return len(self.ds)
+
+    def __getitems__(self, indices: list[int]) -> list[dict]:
+        return [self.ds.get_batch(indices)]
+
+    def __getitem__(self, idx: int) -> dict:  # pragma: no cover - DataLoader uses __getitems__
+        return self.ds[idx]
+
+
+def _first(batch: list[dict]) -> dict:
+    return batch[0]
+
+
+def make_loader(ds: PatchDataset, batch_size: int, shuffle: bool = True, num_workers: int = 0, seed: int = 0,
+                drop_last: bool = False) -> "torch.utils.data.DataLoader":
+    """The fast way to iterate a PatchDataset: shard-aware batches fetched whole."""
+    from torch.utils.data import DataLoader
+
+    sampler = ShardBatchSampler(ds, batch_size, shuffle=shuffle, seed=seed, drop_last=drop_last)
+    return DataLoader(_BatchView(ds), batch_sampler=sampler, collate_fn=_first, num_workers=num_workers,
+                      persistent_workers=num_workers > 0)
+
+
+class ShardBatchSampler(Sampler[list[int]]):
+    """Batches drawn from one shard at a time, shards visited a few at a time.
+
+    Each epoch: shards in random order, taken in windows of `interleave`;
+    within a window every shard's patches are shuffled and cut into batches,
+    and the window's batches are shuffled together.  Why: a batch from one
+    shard needs one decoded shard, and a window of shards fits the dataset's
+    LRU of decoded shards, so every shard is decompressed once per epoch while
+    consecutive batches still come from different objects.
     """
 
     def __init__(self, dataset: PatchDataset, batch_size: int, shuffle: bool = True, seed: int = 0,
-                 drop_last: bool = False):
+                 drop_last: bool = False, interleave: int = 4):
         self.ds, self.bs, self.shuffle, self.seed, self.drop_last = dataset, batch_size, shuffle, seed, drop_last
+        self.interleave = max(1, min(interleave, getattr(dataset, "decoded_shards", interleave)))
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
@@ -166,19 +222,23 @@ class ShardBatchSampler(Sampler[list[int]]):
 
     def _batches(self) -> list[list[int]]:
         rng = np.random.default_rng([self.seed, self.epoch])
+        n = len(self.ds.shards)
+        order = rng.permutation(n) if self.shuffle else np.arange(n)
         batches = []
-        for s in range(len(self.ds.shards)):
-            lo, hi = int(self.ds.offsets[s]), int(self.ds.offsets[s + 1])
-            idx = np.arange(lo, hi)
+        for w in range(0, n, self.interleave):
+            window = []
+            for s in order[w:w + self.interleave]:
+                lo, hi = int(self.ds.offsets[s]), int(self.ds.offsets[s + 1])
+                idx = np.arange(lo, hi)
+                if self.shuffle:
+                    rng.shuffle(idx)
+                for b in range(0, len(idx), self.bs):
+                    chunk = idx[b:b + self.bs]
+                    if len(chunk) == self.bs or not self.drop_last:
+                        window.append(chunk.tolist())
             if self.shuffle:
-                rng.shuffle(idx)
-            for b in range(0, len(idx), self.bs):
-                chunk = idx[b:b + self.bs]
-                if len(chunk) == self.bs or not self.drop_last:
-                    batches.append(chunk.tolist())
-        if self.shuffle:
-            order = rng.permutation(len(batches))
-            batches = [batches[i] for i in order]
+                window = [window[i] for i in rng.permutation(len(window))]
+            batches.extend(window)
         return batches
 
     def __iter__(self) -> Iterator[list[int]]:

@@ -216,6 +216,13 @@ def test_dataset_patches_equal_rendered_frame_crops(tmp_path):
     assert b["image"].shape[1:] == (3, P, P) and b["mask"].shape[1:] == (1, P, P)
     cached = PatchDataset(out, cache=True)
     assert torch.equal(cached[5]["image"], ds[5]["image"])
+    from msps_render.data import make_loader
+
+    fast = list(make_loader(ds, 8, seed=2))
+    assert sorted(torch.cat([b["index"] for b in fast]).tolist()) == list(range(len(ds)))
+    b0 = fast[0]
+    for r in range(len(b0["index"])):  # batched fetch equals per-item fetch
+        assert torch.equal(b0["image"][r], ds[int(b0["index"][r])]["image"])
 
 
 def test_bad_config_inputs(tmp_path):
