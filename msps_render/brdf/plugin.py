@@ -1,0 +1,300 @@
+"""Mitsuba 3 BSDF plugin `merl`: a measured (MERL-format) table evaluated with `dr.gather`.
+
+Registered per Mitsuba variant on first use by `merl_bsdf_dict` (idempotent).
+Lookup: nearest bin with MERL's reference semantics (square-root theta_h
+bins, linear theta_d / phi_d, phi_d folded by reciprocity), computed from
+s = wi + wo and u = wi - wo so that swapping wi and wo gives bit-identical bins
+(exact reciprocity; see docs/brdf.md). Sampling: a GGX visible-normal lobe
+fitted to the table (`merl.fit_sampling_lobe`) mixed with cosine-weighted
+hemisphere sampling; `pdf` is the same mixture, so sample/pdf/eval agree.
+Spectral variants: each RGB value is upsampled with Mitsuba's sRGB model
+applied to its chromaticity (rgb / (2 max)) and scaled back (x 2 max), as
+Mitsuba does for unbounded sRGB spectra; the rgb2spec coefficients are
+pre-fetched on its own 3 x 64 x 64 node grid, so bilinear interpolation in
+the kernel reproduces `srgb_model_fetch`.
+
+Memory: one table is 3 x 1,458,000 float32 = 17.5 MB on the device, loaded
+once per (file, variant) per process and shared by every scene and shape.
+Mitsuba is imported lazily, inside functions.
+"""
+from __future__ import annotations
+
+import functools
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+
+from msps_render.brdf import merl
+
+log = logging.getLogger(__name__)
+
+PLUGIN_NAME = "merl"
+_RGB2SPEC_RES = 64  # Mitsuba's srgb.coeff resolution
+
+
+# ----------------------------------------------------------------- table cache
+def _load_table(path: str) -> tuple[np.ndarray, float, float]:
+    """(interleaved (N, 3) float32 table, lobe alpha, lobe weight) of a MERL file."""
+    t = merl.read_merl(path, dtype=np.float32)
+    if t.n_negative or t.n_nonfinite:
+        log.info("%s: %d negative and %d non-finite entries set to 0", path, t.n_negative, t.n_nonfinite)
+    alpha, weight = merl.fit_sampling_lobe(t.rgb)
+    return np.ascontiguousarray(t.rgb.reshape(3, -1).T), alpha, weight
+
+
+@functools.lru_cache(maxsize=None)
+def _device_table(path: str, variant: str):
+    """The table as a drjit Float (JIT variants) or numpy array (scalar variants), once per variant.
+
+    Read-only and shared by every BSDF instance of the process (the only global state).
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    inter, alpha, weight = _load_table(path)
+    if dr.is_jit_v(mi.Float):
+        data = mi.Float(inter.reshape(-1))
+        dr.make_opaque(data)
+        return data, alpha, weight
+    return inter, alpha, weight
+
+
+@functools.lru_cache(maxsize=None)
+def _coeff_grid(variant: str):
+    """rgb2spec coefficients at the nodes of its own grid for colours with max component 1/2.
+
+    Node (i, yi, xi): rgb[i] = 0.5, rgb[(i+1)%3] = 0.5 xi/63, rgb[(i+2)%3] = 0.5 yi/63.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    r = _RGB2SPEC_RES
+    grid = np.zeros((3, r, r, 3), dtype=np.float32)
+    for i in range(3):
+        for yi in range(r):
+            for xi in range(r):
+                c = [0.0, 0.0, 0.0]
+                c[i] = 0.5
+                c[(i + 1) % 3] = 0.5 * xi / (r - 1)
+                c[(i + 2) % 3] = 0.5 * yi / (r - 1)
+                grid[i, yi, xi] = np.array(mi.srgb_model_fetch(mi.ScalarColor3f(*c)), dtype=np.float32)
+    if dr.is_jit_v(mi.Float):
+        g = mi.Float(grid.reshape(-1))
+        dr.make_opaque(g)
+        return g
+    return grid.reshape(-1, 3)
+
+
+# ------------------------------------------------------------- lookup (drjit)
+def merl_index(wi, wo):
+    """Flat MERL bin index of local-frame direction pairs (drjit arrays; symmetric in wi, wo)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    s = wi + wo
+    u = wi - wo
+    r2 = s.x * s.x + s.y * s.y
+    slen = dr.norm(s)
+    theta_h = dr.atan2(dr.sqrt(r2), s.z)
+    theta_d = dr.atan2(dr.norm(u), slen)
+    # u expressed in the half-vector frame (Rz(-phi_h) then Ry(-theta_h)), scaled by r |s| > 0.
+    X = s.z * (s.x * u.x + s.y * u.y) - r2 * u.z
+    Y = slen * (s.x * u.y - s.y * u.x)
+    degenerate = r2 == 0  # half vector on the normal: MERL takes phi_h = 0, theta_h = 0
+    X = dr.select(degenerate, u.x, X)
+    Y = dr.select(degenerate, u.y, Y)
+    flip = (Y < 0) | ((Y == 0) & (X < 0))  # phi_d -> phi_d + pi (reciprocity fold)
+    X = dr.select(flip, -X, X)
+    Y = dr.select(flip, -Y, Y)
+    phi_d = dr.atan2(Y, X)
+    i_h = mi.Int32(dr.floor(dr.sqrt(dr.maximum(theta_h, 0.0) * (merl.RES_THETA_H * merl.RES_THETA_H * 2.0 / math.pi))))
+    i_d = mi.Int32(dr.floor(theta_d * (merl.RES_THETA_D * 2.0 / math.pi)))
+    i_p = mi.Int32(dr.floor(phi_d * ((merl.RES_PHI_D // 2) / math.pi)))
+    i_h = dr.clip(i_h, 0, merl.RES_THETA_H - 1)
+    i_d = dr.clip(i_d, 0, merl.RES_THETA_D - 1)
+    i_p = dr.clip(i_p, 0, merl.RES_PHI_D // 2 - 1)
+    n_p = merl.RES_PHI_D // 2
+    return mi.UInt32(i_p + n_p * (i_d + merl.RES_THETA_D * i_h))
+
+
+def _gather_rgb(table, idx, active):
+    import drjit as dr
+    import mitsuba as mi
+
+    if dr.is_jit_v(mi.Float):
+        return dr.gather(mi.Color3f, table, idx, active)
+    if not active:
+        return mi.Color3f(0.0)
+    v = table[int(idx)]
+    return mi.Color3f(float(v[0]), float(v[1]), float(v[2]))
+
+
+def _rgb_to_spectrum(rgb, wavelengths, grid):
+    """Unbounded sRGB upsampling: srgb_model(rgb / (2 max)) * 2 max, bilinear in the rgb2spec grid."""
+    import drjit as dr
+    import mitsuba as mi
+
+    scale = 2.0 * dr.maximum(dr.maximum(rgb.x, rgb.y), rgb.z)
+    c = rgb / dr.select(scale > 0, scale, 1.0)
+    # argmax, ties to the later component (as rgb2spec_fetch)
+    i = dr.select(c.y >= c.x, 1, 0)
+    ci = dr.select(i == 1, c.y, c.x)
+    i = dr.select(c.z >= ci, 2, i)
+    ci = dr.maximum(dr.select(i == 2, c.z, ci), 1e-20)
+    a = dr.select(i == 0, c.y, dr.select(i == 1, c.z, c.x))  # rgb[(i+1)%3]
+    b = dr.select(i == 0, c.z, dr.select(i == 1, c.x, c.y))  # rgb[(i+2)%3]
+    r1 = _RGB2SPEC_RES - 1
+    x = dr.clip(a / ci * r1, 0.0, float(r1))
+    y = dr.clip(b / ci * r1, 0.0, float(r1))
+    xi = dr.minimum(mi.UInt32(x), r1 - 1)
+    yi = dr.minimum(mi.UInt32(y), r1 - 1)
+    x1 = x - mi.Float(xi)
+    y1 = y - mi.Float(yi)
+    base = (mi.UInt32(i) * _RGB2SPEC_RES + yi) * _RGB2SPEC_RES + xi
+
+    def node(off):
+        if dr.is_jit_v(mi.Float):
+            return dr.gather(mi.Vector3f, grid, base + off)
+        v = grid[int(base + off)]
+        return mi.Vector3f(float(v[0]), float(v[1]), float(v[2]))
+
+    coeff = ((node(0) * (1 - x1) + node(1) * x1) * (1 - y1)
+             + (node(_RGB2SPEC_RES) * (1 - x1) + node(_RGB2SPEC_RES + 1) * x1) * y1)
+    spec = mi.srgb_model_eval(coeff, wavelengths)
+    return mi.UnpolarizedSpectrum(spec) * scale
+
+
+# ----------------------------------------------------------------- the plugin
+@functools.lru_cache(maxsize=None)
+def _plugin_class(variant: str):
+    """The `mi.BSDF` subclass bound to `variant` (Python plugins are per-variant classes)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    flags = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide
+
+    class MerlBSDF(mi.BSDF):
+        """Measured isotropic BRDF from a MERL `.binary` (property `filename`)."""
+
+        def __init__(self, props: "mi.Properties"):
+            mi.BSDF.__init__(self, props)
+            self.filename = str(props["filename"])
+            self.table, alpha, weight = _device_table(self.filename, variant)
+            if props.has_property("lobe_alpha"):
+                alpha = float(props["lobe_alpha"])
+            if props.has_property("lobe_weight"):
+                weight = float(props["lobe_weight"])
+            self.alpha = float(min(max(alpha, 1e-3), 1.0))
+            self.weight = float(min(max(weight, 0.0), 1.0))
+            self.spectral = mi.is_spectral
+            self.grid = _coeff_grid(variant) if self.spectral else None
+            self.m_components = [flags]
+            self.m_flags = flags
+
+        def _value(self, si, wo, active):
+            idx = merl_index(si.wi, wo)
+            rgb = _gather_rgb(self.table, idx, active)
+            if self.spectral:
+                return _rgb_to_spectrum(rgb, si.wavelengths, self.grid)
+            return mi.Spectrum(rgb)
+
+        def _pdf(self, wi, wo):
+            cos_o = dr.maximum(mi.Frame3f.cos_theta(wo), 0.0)
+            pdf = (1.0 - self.weight) * cos_o * (1.0 / math.pi)
+            if self.weight > 0.0:
+                distr = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, self.alpha, True)
+                m = dr.normalize(wi + wo)
+                dwo = dr.dot(wo, m)
+                p_m = distr.pdf(wi, m)
+                pdf += self.weight * dr.select(dwo > 0, p_m / (4.0 * dr.maximum(dwo, 1e-12)), 0.0)
+            return pdf
+
+        def _eval_pdf(self, ctx, si, wo, active):
+            cos_i = mi.Frame3f.cos_theta(si.wi)
+            cos_o = mi.Frame3f.cos_theta(wo)
+            active = active & (cos_i > 0) & (cos_o > 0)
+            if not ctx.is_enabled(mi.BSDFFlags.GlossyReflection):
+                active = active & False
+            value = self._value(si, wo, active) * cos_o
+            pdf = self._pdf(si.wi, wo)
+            return dr.select(active, value, 0.0), dr.select(active, pdf, 0.0)
+
+        def eval(self, ctx, si, wo, active=True):
+            return self._eval_pdf(ctx, si, wo, active)[0]
+
+        def pdf(self, ctx, si, wo, active=True):
+            cos_i = mi.Frame3f.cos_theta(si.wi)
+            cos_o = mi.Frame3f.cos_theta(wo)
+            ok = active & (cos_i > 0) & (cos_o > 0)
+            return dr.select(ok, self._pdf(si.wi, wo), 0.0)
+
+        def eval_pdf(self, ctx, si, wo, active=True):
+            return self._eval_pdf(ctx, si, wo, active)
+
+        def sample(self, ctx, si, sample1, sample2, active=True):
+            cos_i = mi.Frame3f.cos_theta(si.wi)
+            active = active & (cos_i > 0)
+            wo = mi.warp.square_to_cosine_hemisphere(sample2)
+            if self.weight > 0.0:
+                distr = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, self.alpha, True)
+                m, _ = distr.sample(si.wi, sample2)
+                wo = dr.select(sample1 < self.weight, mi.reflect(si.wi, m), wo)
+            value, pdf = self._eval_pdf(ctx, si, wo, active)
+            active = active & (pdf > 0)
+            bs = dr.zeros(mi.BSDFSample3f)
+            bs.wo = wo
+            bs.pdf = dr.select(active, pdf, 0.0)
+            bs.eta = 1.0
+            bs.sampled_type = mi.UInt32(+mi.BSDFFlags.GlossyReflection)
+            bs.sampled_component = mi.UInt32(0)
+            weight = value / dr.select(active, pdf, 1.0)
+            return bs, dr.select(active, weight, 0.0)
+
+        def traverse(self, callback):
+            pass
+
+        def parameters_changed(self, keys):
+            pass
+
+        def to_string(self):
+            return (f"MerlBSDF[filename='{self.filename}', lobe_alpha={self.alpha:.4f}, "
+                    f"lobe_weight={self.weight:.3f}]")
+
+    return MerlBSDF
+
+
+def register(variant: str | None = None) -> str:
+    """Register the `merl` plugin for the current (or given, must be current) variant; idempotent."""
+    import mitsuba as mi
+
+    v = variant or mi.variant()
+    if v is None:
+        raise RuntimeError("set a Mitsuba variant before registering the merl plugin")
+    if v not in _REGISTERED:
+        cls = _plugin_class(v)
+        mi.register_bsdf(PLUGIN_NAME, lambda props: cls(props))
+        _REGISTERED.add(v)
+    return v
+
+
+_REGISTERED: set[str] = set()
+
+
+def merl_bsdf_dict(m) -> dict:
+    """`mi.load_dict` description of a MaterialSpec of kind 'merl' (registers the plugin)."""
+    from msps_render.brdf.library import resolve_table
+
+    register()
+    path = resolve_table(m)
+    d = {"type": PLUGIN_NAME, "filename": str(path)}
+    for k in ("lobe_alpha", "lobe_weight"):
+        if k in m.params:
+            d[k] = float(m.params[k])
+    return d
+
+
+def table_memory_bytes() -> int:
+    """Device memory of one loaded table (float32 RGB)."""
+    return 3 * merl.N_BINS * 4
