@@ -67,11 +67,6 @@ def test_env_raises_energy_by_ratio_and_keeps_ground_truth(mode, plane_obj, requ
         np.testing.assert_array_equal(getattr(f_env, name), getattr(f_dark, name))
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "render.render_emitters_separately switches emitters off via sampling_weight=0, which does not "
-    "stop BSDF-sampled rays from hitting the envmap: every per-light image also contains the env, "
-    "so the RGB image counts it (K+1) times. Fix in render.py: also set the envmap's `scale` to 0 "
-    "while rendering the lights. Remove this marker with the fix."))
 def test_rgb_env_counted_once(plane_obj, rgb_variant):
     from msps_render.render import render_frame
 

@@ -188,14 +188,23 @@ def render_emitters_separately(mi, scene, spec: SceneSpec) -> list[np.ndarray]:
         return [np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float32)[..., :3]]
     weight = {k: f"{k}.sampling_weight" for k in keys}
     orig = {k: float(params[w][0] if hasattr(params[w], "__len__") else params[w]) for k, w in weight.items()}
+    # BSDF-sampled rays can still hit the environment when it is not sampled, so it is
+    # also dimmed (scale 0) while the lights render; delta lights cannot be hit that way.
+    env_scale = f"{ENV_KEY}.scale"
+    env_orig = float(params[env_scale][0] if hasattr(params[env_scale], "__len__") else params[env_scale]) \
+        if env_scale in params else None
     images = []
     for on in keys:
         for k, w in weight.items():
             params[w] = orig[k] if k == on else 0.0
+        if env_orig is not None:
+            params[env_scale] = env_orig if on == ENV_KEY else 0.0
         params.update()
         images.append(np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float32)[..., :3])
     for k, w in weight.items():  # leave the scene as it was loaded
         params[w] = orig[k]
+    if env_orig is not None:
+        params[env_scale] = env_orig
     params.update()
     return images
 
