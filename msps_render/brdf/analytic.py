@@ -50,11 +50,13 @@ def _smith_lambda(cos_t: np.ndarray, alpha: float) -> np.ndarray:
 
 
 def ggx(wi: np.ndarray, wo: np.ndarray, kd=(0.2, 0.2, 0.2), ks=(1.0, 1.0, 1.0), alpha: float = 0.1,
-        f0: float = 0.04) -> np.ndarray:
-    """Diffuse + Cook-Torrance GGX lobe: kd/pi + ks F(theta_d) D G2 / (4 cos_i cos_o).
+        f0: float = 0.04, separable: float = 0.0) -> np.ndarray:
+    """Diffuse + Cook-Torrance GGX lobe: kd/pi + ks F(theta_d) D G / (4 cos_i cos_o).
 
     F is Schlick's with normal reflectance `f0` (f0 = 1 gives a metal whose
-    colour is ks). Cosines are clamped to 1e-3 so that bins whose centre lies
+    colour is ks). G is Smith's height-correlated G2, or the separable
+    G1(wi) G1(wo) when `separable` is 1 (as Mitsuba's `roughconductor`, which
+    the tests compare against: ks = 1, f0 = 1 is its `material = "none"`). Cosines are clamped to 1e-3 so that bins whose centre lies
     just below the horizon get the smooth continuation, not a hard 0.
     """
     kd, ks = _rgb(kd, "kd"), _rgb(ks, "ks")
@@ -68,7 +70,8 @@ def ggx(wi: np.ndarray, wo: np.ndarray, kd=(0.2, 0.2, 0.2), ks=(1.0, 1.0, 1.0), 
     co = np.maximum(wo[..., 2], 1e-3)
     cd = np.clip(np.sum(wi * h, axis=-1), 0.0, 1.0)
     F = f0 + (1.0 - f0) * (1.0 - cd) ** 5
-    G = 1.0 / (1.0 + _smith_lambda(ci, alpha) + _smith_lambda(co, alpha))
+    li, lo = _smith_lambda(ci, alpha), _smith_lambda(co, alpha)
+    G = 1.0 / ((1.0 + li) * (1.0 + lo)) if separable else 1.0 / (1.0 + li + lo)
     spec = F * ggx_d(h[..., 2], alpha) * G / (4.0 * ci * co)
     return kd / math.pi + spec[..., None] * ks
 

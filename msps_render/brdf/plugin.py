@@ -182,9 +182,9 @@ def _plugin_class(variant: str):
             mi.BSDF.__init__(self, props)
             self.filename = str(props["filename"])
             self.table, alpha, weight = _device_table(self.filename, variant)
-            if props.has_property("lobe_alpha"):
+            if "lobe_alpha" in props:
                 alpha = float(props["lobe_alpha"])
-            if props.has_property("lobe_weight"):
+            if "lobe_weight" in props:
                 weight = float(props["lobe_weight"])
             self.alpha = float(min(max(alpha, 1e-3), 1.0))
             self.weight = float(min(max(weight, 0.0), 1.0))
