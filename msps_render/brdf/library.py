@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msps_render.errors import InputError, format_validation_error  # noqa: F401 (re-export)
+from msps_render.errors import InputError
 from msps_render.scene.spec import MaterialSpec
 
 log = logging.getLogger(__name__)

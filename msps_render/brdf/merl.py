@@ -226,9 +226,8 @@ def fit_sampling_lobe(rgb: np.ndarray, max_theta_d_deg: float = 5.0) -> tuple[fl
     """
     from scipy.optimize import nnls
 
-    y = luminance(np.asarray(rgb, dtype=np.float64))
     n_d = max(1, int(round(max_theta_d_deg / 90.0 * RES_THETA_D)))
-    prof = y[:, :n_d, :].mean(axis=(1, 2))
+    prof = luminance(np.asarray(rgb[:, :, :n_d, :], dtype=np.float64)).mean(axis=(1, 2))
     th = ((np.arange(RES_THETA_H) + 0.5) / RES_THETA_H) ** 2 * (math.pi / 2)
     keep = (th < math.radians(75.0)) & np.isfinite(prof)
     prof, th = prof[keep], th[keep]
