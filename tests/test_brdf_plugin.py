@@ -284,3 +284,15 @@ def test_material_spec_to_mitsuba_registers_once(tables, monkeypatch, tmp_path):
     direct = MaterialSpec(name="merl:x", kind="merl", params={"table": tables["lambert"]})
     assert to_mitsuba(direct)["filename"] == str(pytest.importorskip("pathlib").Path(tables["lambert"]).resolve())
     assert plugin.table_memory_bytes() == 17_496_000
+
+
+def test_corrupt_table_fails_before_mitsuba_with_input_error(tmp_path):
+    use_variant("llvm_ad_rgb")
+    from msps_render.errors import InputError
+    from msps_render.scene.materials import to_mitsuba
+    from msps_render.scene.spec import MaterialSpec
+
+    bad = tmp_path / "broken.binary"
+    bad.write_bytes(b"\x5a\x00\x00\x00" * 3 + b"\x00" * 100)
+    with pytest.raises(InputError, match="broken.binary: not a MERL BRDF"):
+        to_mitsuba(MaterialSpec(name="merl:broken", kind="merl", params={"table": str(bad)}))

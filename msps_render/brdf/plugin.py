@@ -285,8 +285,9 @@ def merl_bsdf_dict(m) -> dict:
     """`mi.load_dict` description of a MaterialSpec of kind 'merl' (registers the plugin)."""
     from msps_render.brdf.library import resolve_table
 
-    register()
+    variant = register()
     path = resolve_table(m)
+    _device_table(str(path), variant)  # load (once) here, so a bad file raises InputError, not a Mitsuba error
     d = {"type": PLUGIN_NAME, "filename": str(path)}
     for k in ("lobe_alpha", "lobe_weight"):
         if k in m.params:
