@@ -1,0 +1,172 @@
+"""The dual-cue network: n_est = PCN(c, SCN(c))  (Ju et al. 2020; docs/reproducing.md).
+
+SCN (structural cue): the R, G, B channels go through separate conv branches
+(spectral-division multiplexing), an Interleaved Group Convolution block mixes
+them (primary group conv per channel branch, channel permutation, secondary
+group conv whose groups each take one channel from every primary group), then
+a U-Net (three stride-2 downs 40->20->10->5, three transposed-conv ups with
+skip connections) and 1x1 convs give a coarse normal map.
+
+PCN (photometric cue): a per-pixel multi-branch fully connected net on
+[observation (3), coarse normal (3)]: one branch per input, merged, then FC
+layers, L2-normalised.  Per-pixel FC layers are written as 1x1 convolutions,
+which is the same computation without reshaping to (B*H*W, 6).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    branch: int = 8  # features per colour-channel branch
+    unet: tuple[int, int, int, int] = (24, 48, 64, 96)  # widths at 40, 20, 10, 5
+    pcn_branch: int = 32  # width of each PCN input branch
+    pcn: tuple[int, ...] = (64, 64, 32, 32)  # PCN FC widths after the merge
+    mode: str = "dual"  # dual | scn | pcn
+
+    def __post_init__(self):
+        if self.mode not in ("dual", "scn", "pcn"):
+            raise ValueError(f"mode must be dual, scn or pcn, got {self.mode!r}")
+
+
+def _conv(cin: int, cout: int, stride: int = 1, groups: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, groups=groups, bias=False), nn.BatchNorm2d(cout),
+                         nn.ReLU(inplace=True))
+
+
+class IGCBlock(nn.Module):
+    """Interleaved group convolution (Zhang et al. 2017) over `g1` channel-branch groups."""
+
+    def __init__(self, channels: int, g1: int = 3):
+        super().__init__()
+        if channels % g1:
+            raise ValueError("channels must be divisible by the number of primary groups")
+        self.g1, self.g2 = g1, channels // g1
+        self.primary = nn.Conv2d(channels, channels, 3, 1, 1, groups=g1, bias=False)
+        self.secondary = nn.Conv2d(channels, channels, 1, groups=self.g2, bias=False)
+        self.bn = nn.BatchNorm2d(channels)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.primary(x)
+        B, C, H, W = y.shape
+        # permutation: secondary group j gets channel j of every primary group
+        y = y.view(B, self.g1, self.g2, H, W).transpose(1, 2).reshape(B, C, H, W)
+        y = self.secondary(y)
+        y = y.view(B, self.g2, self.g1, H, W).transpose(1, 2).reshape(B, C, H, W)  # back to branch order
+        return F.relu(self.bn(y) + x)
+
+
+class SCN(nn.Module):
+    def __init__(self, cfg: NetConfig):
+        super().__init__()
+        b = cfg.branch
+        self.branches = nn.ModuleList([nn.Sequential(_conv(1, b), _conv(b, b)) for _ in range(3)])
+        self.igc = IGCBlock(3 * b, 3)
+        c0, c1, c2, c3 = cfg.unet
+        self.enc0 = _conv(3 * b, c0)
+        self.down1, self.enc1 = _conv(c0, c1, 2), _conv(c1, c1)
+        self.down2, self.enc2 = _conv(c1, c2, 2), _conv(c2, c2)
+        self.down3, self.enc3 = _conv(c2, c3, 2), _conv(c3, c3)
+        self.up3 = nn.ConvTranspose2d(c3, c2, 4, 2, 1)
+        self.dec2 = _conv(2 * c2, c2)
+        self.up2 = nn.ConvTranspose2d(c2, c1, 4, 2, 1)
+        self.dec1 = _conv(2 * c1, c1)
+        self.up1 = nn.ConvTranspose2d(c1, c0, 4, 2, 1)
+        self.dec0 = _conv(2 * c0, c0)
+        self.head = nn.Sequential(nn.Conv2d(c0, c0, 1), nn.ReLU(inplace=True), nn.Conv2d(c0, 3, 1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f = torch.cat([br(x[:, i:i + 1]) for i, br in enumerate(self.branches)], 1)
+        e0 = self.enc0(self.igc(f))
+        e1 = self.enc1(self.down1(e0))
+        e2 = self.enc2(self.down2(e1))
+        e3 = self.enc3(self.down3(e2))
+        d2 = self.dec2(torch.cat([self.up3(e3), e2], 1))
+        d1 = self.dec1(torch.cat([self.up2(d2), e1], 1))
+        d0 = self.dec0(torch.cat([self.up1(d1), e0], 1))
+        return F.normalize(self.head(d0), dim=1)
+
+
+class PCN(nn.Module):
+    """Per-pixel multi-branch FC: observation branch + coarse-normal branch -> merged FC -> unit normal."""
+
+    def __init__(self, cfg: NetConfig, with_normal: bool = True):
+        super().__init__()
+        w = cfg.pcn_branch
+        self.with_normal = with_normal
+        self.obs = nn.Sequential(nn.Conv2d(3, w, 1), nn.ReLU(inplace=True))
+        self.nrm = nn.Sequential(nn.Conv2d(3, w, 1), nn.ReLU(inplace=True)) if with_normal else None
+        layers, cin = [], w * (2 if with_normal else 1)
+        for cout in cfg.pcn:
+            layers += [nn.Conv2d(cin, cout, 1), nn.ReLU(inplace=True)]
+            cin = cout
+        layers.append(nn.Conv2d(cin, 3, 1))
+        self.fc = nn.Sequential(*layers)
+
+    def forward(self, obs: torch.Tensor, coarse: torch.Tensor | None = None) -> torch.Tensor:
+        f = self.obs(obs)
+        if self.with_normal:
+            f = torch.cat([f, self.nrm(coarse)], 1)
+        return F.normalize(self.fc(f), dim=1)
+
+
+def normalise_observation(x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Divide each patch by its mean object intensity: makes the net exposure-invariant
+    (radiance scale depends on light power and albedo, not on shape)."""
+    if mask is None:
+        mask = (x.sum(1, keepdim=True) > 0).float()
+    s = (x * mask).sum((1, 2, 3), keepdim=True) / (3 * mask.sum((1, 2, 3), keepdim=True)).clamp_min(1.0)
+    return x / s.clamp_min(1e-6)
+
+
+class DualCueNet(nn.Module):
+    """`forward(image, mask)` -> (final normal, coarse normal or None), both (B, 3, H, W)."""
+
+    def __init__(self, cfg: NetConfig = NetConfig()):
+        super().__init__()
+        self.cfg = cfg
+        self.scn = SCN(cfg) if cfg.mode in ("dual", "scn") else None
+        self.pcn = PCN(cfg, with_normal=cfg.mode == "dual") if cfg.mode in ("dual", "pcn") else None
+
+    def forward(self, image: torch.Tensor, mask: torch.Tensor | None = None):
+        if image.ndim != 4 or image.shape[1] != 3:
+            raise ValueError(f"expected images of shape (B, 3, H, W), got {tuple(image.shape)}")
+        if image.shape[-1] % 8 or image.shape[-2] % 8:
+            raise ValueError(f"height and width must be multiples of 8 (U-Net), got {tuple(image.shape[-2:])}")
+        x = normalise_observation(image, mask)
+        coarse = self.scn(x) if self.scn is not None else None
+        if self.pcn is None:
+            return coarse, coarse
+        return self.pcn(x, coarse), coarse
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
+def flops_per_patch(model: DualCueNet, size: int = 40) -> int:
+    """Multiply-adds x 2 of one forward pass (convs and transposed convs), counted with hooks."""
+    total = [0]
+
+    def hook(m, inp, out):
+        kk = m.kernel_size[0] * m.kernel_size[1]
+        if isinstance(m, nn.ConvTranspose2d):  # every input pixel scatters a k x k x out/groups block
+            total[0] += 2 * inp[0].numel() * kk * m.out_channels // m.groups
+        else:  # every output pixel gathers k x k x in/groups
+            total[0] += 2 * out.numel() * kk * m.in_channels // m.groups
+
+    hs = [m.register_forward_hook(hook) for m in model.modules() if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d))]
+    was = model.training
+    model.eval()
+    with torch.no_grad():
+        model(torch.rand(1, 3, size, size))
+    model.train(was)
+    for h in hs:
+        h.remove()
+    return total[0]
+

@@ -1,0 +1,76 @@
+"""Model presets (`models/*.toml`): network widths and training schedule, validated."""
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from msps_render.errors import InputError, format_validation_error
+
+MODEL_DIR = Path(__file__).resolve().parents[2] / "models"
+
+
+class _Cfg(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class NetSection(_Cfg):
+    branch: int = Field(8, ge=1)
+    unet: tuple[int, int, int, int] = (24, 48, 64, 96)
+    pcn_branch: int = Field(32, ge=1)
+    pcn: tuple[int, ...] = (64, 64, 32, 32)
+    mode: Literal["dual", "scn", "pcn"] = "dual"
+
+
+class TrainSection(_Cfg):
+    batch_size: int = Field(24, ge=1)
+    lr: float = Field(1e-3, gt=0)
+    betas: tuple[float, float] = (0.9, 0.999)
+    epochs: int = Field(20, ge=1)
+    max_steps: int = Field(100000, ge=1)
+    max_minutes: float | None = Field(None, gt=0)
+    schedule: Literal["constant", "cosine"] = "cosine"
+    val_every: int = Field(500, ge=1)
+    val_max_patches: int = Field(2000, ge=1)
+    seed: int = 0
+    num_workers: int = Field(0, ge=0)
+
+
+class ModelConfig(_Cfg):
+    preset: str = "custom"
+    net: NetSection = NetSection()
+    train: TrainSection = TrainSection()
+
+    def net_config(self):
+        from msps_render.models.net import NetConfig
+
+        n = self.net
+        return NetConfig(branch=n.branch, unet=tuple(n.unet), pcn_branch=n.pcn_branch, pcn=tuple(n.pcn), mode=n.mode)
+
+
+def load_model_config(path_or_name: str | Path, overrides: list[str] = ()) -> ModelConfig:
+    from msps_render.pipeline.config import _coerce, _set_path, _unknown_keys
+
+    p = Path(path_or_name)
+    if not p.is_file():
+        cand = MODEL_DIR / f"{path_or_name}.toml"
+        if not cand.is_file():
+            known = sorted(q.stem for q in MODEL_DIR.glob("*.toml"))
+            raise InputError(p, f"model config not found (presets: {', '.join(known)})")
+        p = cand
+    try:
+        data = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(p, f"not valid TOML ({e})") from None
+    for ov in overrides:
+        k, _, v = ov.partition("=")
+        _set_path(data, k.strip(), _coerce(v.strip()))
+    unknown = _unknown_keys(data, ModelConfig)
+    if unknown:
+        raise InputError(p, "; ".join(unknown))
+    try:
+        return ModelConfig.model_validate(data)
+    except Exception as e:
+        raise InputError(p, format_validation_error(e)) from None
