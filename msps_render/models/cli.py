@@ -1,0 +1,82 @@
+"""Model commands: `msps train | eval | predict` (torch imported only when they run)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+app = typer.Typer(add_completion=False)
+
+
+def _run(fn):
+    from msps_render.cli import clean_errors
+
+    return clean_errors(fn)()
+
+
+@app.command("train")
+def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAME.toml) or TOML path"),
+              data: Path = typer.Option(..., help="training dataset directory"),
+              val: Path = typer.Option(..., help="validation dataset directory"),
+              out: Path = typer.Option(..., help="run directory (checkpoints, metrics)"),
+              resume: bool = typer.Option(False, help="continue the run in OUT"),
+              set_: List[str] = typer.Option([], "--set", help="override, e.g. train.max_minutes=10"),
+              device: str = typer.Option("cpu", help="cpu or cuda"),
+              threads: Optional[int] = typer.Option(None, help="torch CPU threads")):
+    """Train the dual-cue network (or an ablation: --set net.mode=scn|pcn)."""
+
+    def go():
+        import torch
+
+        from msps_render.models.presets import load_model_config
+        from msps_render.models.train import train
+
+        if threads:
+            torch.set_num_threads(threads)
+        cfg = load_model_config(config, list(set_))
+        typer.echo(json.dumps(train(cfg, data, val, out, resume=resume, device=device)))
+
+    _run(go)
+
+
+@app.command("eval")
+def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)"),
+             out: Path = typer.Option(..., help="report directory"),
+             checkpoint: Optional[Path] = typer.Option(None, help="checkpoint (default: models/dualcue-cpu.pt)"),
+             method: str = typer.Option("net", help="net or lambertian"),
+             max_patches: Optional[int] = typer.Option(None, help="limit per condition")):
+    """Angular-error statistics, SSIM, per-object table, robustness (metrics.json + plots)."""
+
+    def go():
+        from msps_render.models.evaluate import evaluate
+
+        r = evaluate(data, out, checkpoint=checkpoint, method=method, max_patches=max_patches)
+        for cond, v in r["conditions"].items():
+            p = v["patches"]
+            typer.echo(f"{cond or 'all'}: MAE {p['mae_deg']:.2f} deg, median {p['median_deg']:.2f}, "
+                       f"<10deg {p['pct_under_10']:.1f}%, SSIM {p['ssim']:.4f} ({p['n_patches']} patches)")
+        typer.echo(f"wrote {out / 'metrics.json'}")
+
+    _run(go)
+
+
+@app.command("predict")
+def predict_cmd(image: Path = typer.Argument(..., help="EXR/HDR/PNG/NPY image (linear RGB)"),
+                out: Path = typer.Option(..., help="output path stem (writes .npy and .png)"),
+                checkpoint: Optional[Path] = typer.Option(None, help="checkpoint (default: shipped cpu model)"),
+                method: str = typer.Option("net", help="net or lambertian"),
+                mask: Optional[Path] = typer.Option(None, help="mask image (default: non-zero pixels)"),
+                calibration: Optional[Path] = typer.Option(None, help="JSON with light_dirs / crosstalk"),
+                light_dirs: Optional[str] = typer.Option(None, help="JSON 3x3, rows toward the lights"),
+                crosstalk: Optional[str] = typer.Option(None, help="JSON 3x3 crosstalk matrix")):
+    """Normal map of a whole image (overlapping 40x40 tiles, blended) or by the Lambertian baseline."""
+
+    def go():
+        from msps_render.models.predict import predict_main
+
+        files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk)
+        typer.echo("wrote " + ", ".join(map(str, files)))
+
+    _run(go)
