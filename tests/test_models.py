@@ -1,0 +1,303 @@
+"""The dual-cue network (issue 6): shapes, losses against hand computation, training, checkpoints, errors."""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from msps_render.errors import InputError  # noqa: E402
+from msps_render.models import losses as Lo  # noqa: E402
+from msps_render.models.net import DualCueNet, IGCBlock, count_parameters, flops_per_patch  # noqa: E402
+from msps_render.models.presets import load_model_config  # noqa: E402
+
+torch.set_num_threads(2)
+
+
+@pytest.mark.parametrize("preset,params", [("cpu", 548_158), ("paper", 17_235_206)])
+def test_presets_shapes_unit_outputs_and_parameter_counts(preset, params):
+    cfg = load_model_config(preset)
+    model = DualCueNet(cfg.net_config())
+    n = count_parameters(model)
+    print(f"{preset}: {n} parameters, {flops_per_patch(model) / 1e9:.3f} GFLOP/patch")
+    assert n == params
+    x = torch.rand(2, 3, 40, 40)
+    final, coarse = model(x)
+    assert final.shape == coarse.shape == (2, 3, 40, 40)
+    assert torch.allclose(final.norm(dim=1), torch.ones(2, 40, 40), atol=1e-5)
+    assert torch.allclose(coarse.norm(dim=1), torch.ones(2, 40, 40), atol=1e-5)
+
+
+def test_ablations_and_paper_widths():
+    cfg = load_model_config("paper")
+    assert cfg.net.pcn_branch * 2 == 1024 and tuple(cfg.net.pcn) == (1024, 1024, 512, 512)  # FC 1024-1024-1024-512-512
+    scn = DualCueNet(load_model_config("cpu", ["net.mode=scn"]).net_config())
+    pcn = DualCueNet(load_model_config("cpu", ["net.mode=pcn"]).net_config())
+    assert scn.pcn is None and pcn.scn is None and pcn.pcn.nrm is None
+    f, c = pcn(torch.rand(1, 3, 40, 40))
+    assert c is None and f.shape == (1, 3, 40, 40)
+    # PCN is per-pixel: a pixel's output does not depend on its neighbours
+    x = torch.rand(1, 3, 40, 40)
+    y = x.clone()
+    y[..., 0, 0] += 1.0
+    pcn.eval()
+    a, _ = pcn(x, torch.ones(1, 1, 40, 40))
+    b, _ = pcn(y * 1.0, torch.ones(1, 1, 40, 40))
+    # (only the global exposure normalisation couples pixels; undo it by comparing directions far away)
+    assert torch.allclose(a[..., 10:, 10:], b[..., 10:, 10:], atol=1e-2)
+
+
+def test_igc_permutation_mixes_every_primary_group():
+    blk = IGCBlock(6, 3)  # primary groups {0,1}, {2,3}, {4,5}; secondary groups take one of each
+    with torch.no_grad():
+        blk.primary.weight.zero_()
+        for c in range(6):
+            blk.primary.weight[c, c % 2, 1, 1] = 1.0  # identity
+        blk.secondary.weight.fill_(1.0)
+        blk.bn.eval()
+    x = torch.zeros(1, 6, 3, 3)
+    x[0, 0] = 1.0  # only channel 0 (group 0) is non-zero
+    y = blk.secondary(blk.primary(x).view(1, 3, 2, 3, 3).transpose(1, 2).reshape(1, 6, 3, 3))
+    # after the permutation channel 0 feeds secondary group 0 = channels {0, 1, 2}
+    assert (y[0, :3] != 0).all() and (y[0, 3:] == 0).all()
+
+
+def test_losses_against_hand_computed_values():
+    gt = torch.zeros(1, 3, 2, 2)
+    gt[:, 2] = 1.0  # all normals (0, 0, 1)
+    pred = gt.clone()
+    pred[0, :, 0, 0] = torch.tensor([1.0, 0.0, 0.0])  # one pixel at 90 degrees
+    mask = torch.ones(1, 1, 2, 2)
+    # content: |(1,0,-1)|^2 = 2 at one of 4 pixels -> mean 0.5
+    assert Lo.content_loss(pred, gt, mask).item() == pytest.approx(0.5)
+    # masked: drop the wrong pixel -> 0; keep only it -> 2
+    m1 = torch.ones(1, 1, 2, 2)
+    m1[0, 0, 0, 0] = 0
+    assert Lo.content_loss(pred, gt, m1).item() == pytest.approx(0.0)
+    m2 = 1 - m1
+    assert Lo.content_loss(pred, gt, m2).item() == pytest.approx(2.0)
+    # MAE: pi/2 at one pixel of four
+    assert Lo.mae_loss(pred, gt, mask).item() == pytest.approx(math.pi / 8, rel=1e-4)
+    # gradient: only the top-left stencil exists on a 2x2 grid; per component c,
+    # |grad| = sqrt(dx^2 + dy^2) of pred minus that of gt (which is 0)
+    dx = pred[0, :, 0, 1] - pred[0, :, 0, 0]
+    dy = pred[0, :, 1, 0] - pred[0, :, 0, 0]
+    expected = ((torch.sqrt(dx ** 2 + dy ** 2)) ** 2).sum().item()
+    assert Lo.gradient_loss(pred, gt, mask).item() == pytest.approx(expected, rel=1e-5)
+    assert Lo.scn_loss(pred, gt, mask).item() == pytest.approx(0.1 * expected + 0.9 * 0.5, rel=1e-5)
+
+
+def test_pcn_loss_and_ssim_masking():
+    g = torch.nn.functional.normalize(torch.randn(2, 3, 24, 24), dim=1)
+    mask = torch.ones(2, 1, 24, 24)
+    assert Lo.pcn_loss(g, g, mask).item() == pytest.approx(0.0, abs=1e-3)  # SSIM 1, MAE ~0
+    p = g.clone()
+    p[:, :, :, 12:] = -p[:, :, :, 12:]  # right half flipped
+    left = torch.zeros_like(mask)
+    left[..., :6] = 1.0  # far from the flipped half (window 11 -> 5 px reach)
+    assert Lo.pcn_loss(p, g, left).item() < 0.01
+    full = Lo.pcn_loss(p, g, mask).item()
+    # half the pixels at 180 deg -> MAE pi/2; SSIM well below 1
+    assert full > 0.16 * math.pi / 2
+    assert Lo.mae_loss(p, g, mask).item() == pytest.approx(math.pi / 2, rel=1e-3)
+
+
+def _synthetic_loader(n=96, seed=0, size=24):
+    """Patches of random spheres rendered in closed form (Lambertian, paper lights)."""
+    from msps_render.scene.lights import PAPER_CROSSTALK, three_lights
+
+    rng = np.random.default_rng(seed)
+    L = np.array([l.direction for l in three_lights(30.0)])
+    imgs, nrms, msks = [], [], []
+    yy, xx = np.mgrid[0:size, 0:size] + 0.5
+    for _ in range(n):
+        cx, cy, r = rng.uniform(6, size - 6, 2).tolist() + [rng.uniform(8, 16)]
+        x, y = (xx - cx) / r, -(yy - cy) / r
+        m = x ** 2 + y ** 2 < 1
+        nz = np.sqrt(np.clip(1 - x ** 2 - y ** 2, 0, None))
+        nn_ = np.stack([x, y, nz], -1) * m[..., None]
+        albedo = rng.uniform(0.2, 0.9, 3)
+        img = (np.clip(nn_ @ L.T, 0, None) @ PAPER_CROSSTALK.T) * albedo * m[..., None]
+        imgs.append(img)
+        nrms.append(nn_)
+        msks.append(m)
+    t = lambda a: torch.from_numpy(np.stack(a).astype(np.float32))
+    return t(imgs).permute(0, 3, 1, 2), t(nrms).permute(0, 3, 1, 2), t(msks)[:, None]
+
+
+def test_short_training_lowers_validation_error_substantially():
+    from msps_render.models.net import NetConfig
+
+    torch.manual_seed(0)
+    x, n, m = _synthetic_loader(96, 0)
+    xv, nv, mv = _synthetic_loader(32, 1)
+    model = DualCueNet(NetConfig(branch=4, unet=(8, 16, 16, 24), pcn_branch=16, pcn=(32, 32)))
+    opt = torch.optim.Adam(model.parameters(), 1e-3)
+
+    def val_mae():
+        model.eval()
+        with torch.no_grad():
+            p, _ = model(xv, mv)
+        model.train()
+        return float(torch.rad2deg(Lo.angular_error(p, nv))[mv > 0].mean())
+
+    before = val_mae()
+    for step in range(150):
+        i = torch.randint(0, len(x), (16,))
+        f, c = model(x[i], m[i])
+        loss, _ = Lo.total_loss(f, c, n[i], m[i], "dual")
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    after = val_mae()
+    print(f"val MAE {before:.1f} -> {after:.1f} deg")
+    assert after < 0.5 * before and after < 20.0
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+    """A tiny rendered dataset (train = val) for checkpoint and CLI tests."""
+    from msps_render.pipeline.config import load_config
+    from msps_render.pipeline.run import render_dataset
+
+    tmp = tmp_path_factory.mktemp("mdl")
+    cfg = load_config("demo", ["dataset.n_shards=1", "dataset.frames_per_shard=2", "camera.width=48",
+                               "camera.height=48", "integrator.spp=4", "dataset.storage.store_frames=true"])
+    out = tmp / "ds"
+    render_dataset(cfg, out, progress=False)
+    return out
+
+
+def test_checkpoint_round_trip_and_resume(tiny_dataset, tmp_path):
+    from msps_render.models.train import load_checkpoint, train
+
+    cfg = load_model_config("cpu", ["train.max_steps=6", "train.val_every=3", "train.batch_size=4",
+                                    "train.val_max_patches=8"])
+    run = tmp_path / "run"
+    s1 = train(cfg, tiny_dataset, tiny_dataset, run, progress=False)
+    assert s1["steps"] == 6
+    ck = torch.load(run / "last.pt", weights_only=True)  # plain tensors and primitives only
+    assert ck["preset"] == "cpu" and ck["state"]["step"] == 6 and len(ck["data_hash"]) == 64
+    model, _, _ = load_checkpoint(run / "last.pt")
+    model2, _, _ = load_checkpoint(run / "last.pt")
+    x = torch.rand(2, 3, 40, 40)
+    assert torch.equal(model(x)[0], model2(x)[0])
+    # resume continues the same schedule: 6 more steps from step 6
+    cfg2 = cfg.model_copy(update={"train": cfg.train.model_copy(update={"max_steps": 12})})
+    with pytest.raises(InputError, match="different model config"):
+        train(cfg2, tiny_dataset, tiny_dataset, run, resume=True, progress=False)
+    cfg_same = load_model_config("cpu", ["train.max_steps=6", "train.val_every=3", "train.batch_size=4",
+                                         "train.val_max_patches=8", "train.epochs=40"])
+    with pytest.raises(InputError, match="different model config"):
+        train(cfg_same, tiny_dataset, tiny_dataset, run, resume=True, progress=False)
+    with pytest.raises(InputError, match="already holds a training run"):
+        train(cfg, tiny_dataset, tiny_dataset, run, progress=False)
+    # an interrupted run resumed equals an uninterrupted one
+    full = tmp_path / "full"
+    cfg12 = load_model_config("cpu", ["train.max_steps=12", "train.val_every=6", "train.batch_size=4",
+                                      "train.val_max_patches=8", "train.schedule=constant"])
+    train(cfg12, tiny_dataset, tiny_dataset, full, progress=False)
+    part = tmp_path / "part"
+    cfg6 = load_model_config("cpu", ["train.max_steps=12", "train.val_every=6", "train.batch_size=4",
+                                     "train.val_max_patches=8", "train.schedule=constant"])
+    _interrupt_after(cfg6, tiny_dataset, part, steps=6)
+    train(cfg6, tiny_dataset, tiny_dataset, part, resume=True, progress=False)
+    a, _, _ = load_checkpoint(full / "last.pt")
+    b, _, _ = load_checkpoint(part / "last.pt")
+    for (ka, va), (kb, vb) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert torch.allclose(va.float(), vb.float(), atol=1e-5), ka
+
+
+def _interrupt_after(cfg, data, out, steps):
+    """Run training but stop (like a crash after a checkpoint) once `steps` steps are saved."""
+    from msps_render.models import train as T
+
+    real = T.save_checkpoint
+    calls = {"n": 0}
+
+    class Stop(Exception):
+        pass
+
+    def save_then_maybe_stop(path, model, c, extra):
+        r = real(path, model, c, extra)
+        if path.name == "last.pt" and extra["state"]["step"] >= steps:
+            raise Stop()
+        return r
+
+    T.save_checkpoint = save_then_maybe_stop
+    try:
+        with pytest.raises(Stop):
+            T.train(cfg, data, data, out, progress=False)
+    finally:
+        T.save_checkpoint = real
+
+
+def test_bad_inputs(tiny_dataset, tmp_path):
+    from msps_render.models.predict import predict_main
+    from msps_render.models.train import load_checkpoint, save_checkpoint
+
+    # checkpoint of another preset
+    cfg = load_model_config("cpu")
+    p = save_checkpoint(tmp_path / "cpu.pt", DualCueNet(cfg.net_config()), cfg, {})
+    with pytest.raises(InputError, match="preset 'cpu', expected 'paper'"):
+        load_checkpoint(p, expect_preset="paper")
+    torch.save({"hello": 1}, tmp_path / "foreign.pt")
+    with pytest.raises(InputError, match="not an msps dual-cue checkpoint"):
+        load_checkpoint(tmp_path / "foreign.pt")
+    # image with the wrong channel count / too small
+    np.save(tmp_path / "two.npy", np.ones((48, 48, 2), np.float32))
+    with pytest.raises(InputError, match="3-channel"):
+        predict_main(tmp_path / "two.npy", tmp_path / "o", checkpoint=p)
+    np.save(tmp_path / "small.npy", np.ones((20, 20, 3), np.float32))
+    with pytest.raises(InputError, match="at least 40x40"):
+        predict_main(tmp_path / "small.npy", tmp_path / "o", checkpoint=p)
+    with pytest.raises(ValueError, match="shape"):
+        DualCueNet(cfg.net_config())(torch.rand(1, 4, 40, 40))
+    # a dataset that fails verification
+    import shutil
+
+    import h5py
+
+    bad = tmp_path / "bad"
+    shutil.copytree(tiny_dataset, bad)
+    with h5py.File(next((bad / "shards").glob("*.h5")), "r+") as h:
+        h.attrs["complete"] = False
+    r = subprocess.run([sys.executable, "-m", "msps_render.cli", "train", "cpu", "--data", str(bad), "--val",
+                        str(bad), "--out", str(tmp_path / "r")], capture_output=True, text=True)
+    assert r.returncode == 1 and "fails verification" in r.stderr and "not complete" in r.stderr
+
+
+def test_predict_and_eval_cli(tiny_dataset, tmp_path):
+    from msps_render.models.train import save_checkpoint
+
+    cfg = load_model_config("cpu")
+    ck = save_checkpoint(tmp_path / "m.pt", DualCueNet(cfg.net_config()), cfg, {})
+    from msps_render.data import iter_frames
+
+    fr = next(iter_frames(tiny_dataset))
+    np.save(tmp_path / "img.npy", fr.image)
+    np.save(tmp_path / "mask.npy", fr.mask.astype(np.float32))  # without it: non-black pixels only
+    r = subprocess.run([sys.executable, "-m", "msps_render.cli", "predict", str(tmp_path / "img.npy"), "--out",
+                        str(tmp_path / "pred"), "--checkpoint", str(ck), "--mask", str(tmp_path / "mask.npy")],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    n = np.load(tmp_path / "pred.npy")
+    assert n.shape == fr.image.shape
+    assert np.allclose(np.linalg.norm(n[fr.mask], axis=-1), 1, atol=1e-4) and (n[~fr.mask] == 0).all()
+    calib = tmp_path / "cal.json"
+    calib.write_text(json.dumps({"light_dirs": fr.light_dirs.tolist(), "crosstalk": fr.crosstalk.tolist()}))
+    r = subprocess.run([sys.executable, "-m", "msps_render.cli", "predict", str(tmp_path / "img.npy"), "--out",
+                        str(tmp_path / "lamb"), "--method", "lambertian", "--calibration", str(calib)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    r = subprocess.run([sys.executable, "-m", "msps_render.cli", "eval", "--data", str(tiny_dataset), "--out",
+                        str(tmp_path / "rep"), "--method", "lambertian"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((tmp_path / "rep" / "metrics.json").read_text())
+    assert 0 < rep["conditions"][""]["patches"]["mae_deg"] < 90
+    assert rep["conditions"][""]["per_object"]
