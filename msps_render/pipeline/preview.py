@@ -44,7 +44,7 @@ def preview_dataset(root: str | Path, out: str | Path, n: int = 8, seed: int = 0
         for r, (pic, title) in enumerate(((tonemap(img, msk), "image"), (normal_to_rgb8(nrm, msk), "normal"),
                                           (msk.astype(np.uint8) * 255, "mask"))):
             ax = fig.add_subplot(gs[r, j])
-            ax.imshow(pic, cmap="gray" if r == 2 else None, interpolation="nearest")
+            ax.imshow(pic, cmap="gray" if r == 2 else None, vmin=0, vmax=255, interpolation="nearest")
             ax.set_xticks([]), ax.set_yticks([])
             if j == 0:
                 ax.set_ylabel(title)
