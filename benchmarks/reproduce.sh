@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# Reproduce the dual-cue vs ablations vs Lambertian comparison on toolkit-generated data
+# (docs/reproducing.md). ~55 min on a 2-core CPU: ~5 min rendering, 40 min of training
+# (the three models train concurrently, one thread each), ~3 min evaluation.
+# Usage: bash benchmarks/reproduce.sh [DATA_DIR] [RUN_DIR]
+set -euo pipefail
+DATA=${1:-data}
+RUNS=${2:-runs}
+MSPS=${MSPS:-.venv/bin/msps}
+FAMILIES='materials.families=["diffuse","plastic","roughplastic","principled"]'  # roughconductor held out
+
+$MSPS render paper-train --out "$DATA/train" --set dataset.n_shards=100 --set "$FAMILIES" --set materials.merl_fraction=0.0 --resume --quiet || \
+$MSPS render paper-train --out "$DATA/train" --set dataset.n_shards=100 --set "$FAMILIES" --set materials.merl_fraction=0.0 --quiet
+$MSPS render paper-val --out "$DATA/val" --set dataset.n_shards=8 --set "$FAMILIES" --set materials.merl_fraction=0.0 --quiet
+$MSPS render paper-test --out "$DATA/test" --set materials.merl_fraction=0.0 --quiet   # unseen shapes, all families
+$MSPS render robust-env --out "$DATA/robust-env" --set dataset.n_shards=2 --set "$FAMILIES" --quiet
+$MSPS render robust-slant --out "$DATA/robust-slant" --set dataset.n_shards=2 --set "$FAMILIES" --quiet
+
+for mode in dual scn pcn; do
+  $MSPS train cpu --data "$DATA/train" --val "$DATA/val" --out "$RUNS/cpu-$mode" --threads 1 \
+    --set net.mode=$mode --set train.max_minutes=40 --set train.val_every=300 --set train.val_max_patches=1500 &
+done
+wait
+
+for mode in dual scn pcn; do
+  $MSPS eval --data "$DATA/test" --checkpoint "$RUNS/cpu-$mode/best.pt" --out "$RUNS/eval-$mode"
+done
+$MSPS eval --data "$DATA/test" --method lambertian --out "$RUNS/eval-lambertian"
+for set in robust-env robust-slant; do
+  $MSPS eval --data "$DATA/$set" --checkpoint "$RUNS/cpu-dual/best.pt" --out "$RUNS/eval-$set-dual" --max-patches 1500
+  $MSPS eval --data "$DATA/$set" --method lambertian --out "$RUNS/eval-$set-lambertian" --max-patches 1500
+done
