@@ -9,12 +9,13 @@ RUNS=${2:-runs}
 MSPS=${MSPS:-.venv/bin/msps}
 FAMILIES='materials.families=["diffuse","plastic","roughplastic","principled"]'  # roughconductor held out
 
-$MSPS render paper-train --out "$DATA/train" --set dataset.n_shards=100 --set "$FAMILIES" --set materials.merl_fraction=0.0 --resume --quiet || \
-$MSPS render paper-train --out "$DATA/train" --set dataset.n_shards=100 --set "$FAMILIES" --set materials.merl_fraction=0.0 --quiet
-$MSPS render paper-val --out "$DATA/val" --set dataset.n_shards=8 --set "$FAMILIES" --set materials.merl_fraction=0.0 --quiet
-$MSPS render paper-test --out "$DATA/test" --set materials.merl_fraction=0.0 --quiet   # unseen shapes, all families
-$MSPS render robust-env --out "$DATA/robust-env" --set dataset.n_shards=2 --set "$FAMILIES" --quiet
-$MSPS render robust-slant --out "$DATA/robust-slant" --set dataset.n_shards=2 --set "$FAMILIES" --quiet
+# --resume: finish (or skip) what an earlier run of this script rendered
+R="--resume --quiet"
+$MSPS render paper-train --out "$DATA/train" --set dataset.n_shards=100 --set "$FAMILIES" --set materials.merl_fraction=0.0 $R
+$MSPS render paper-val --out "$DATA/val" --set dataset.n_shards=8 --set "$FAMILIES" --set materials.merl_fraction=0.0 $R
+$MSPS render paper-test --out "$DATA/test" --set materials.merl_fraction=0.0 $R   # unseen shapes, all families
+$MSPS render robust-env --out "$DATA/robust-env" --set dataset.n_shards=2 --set "$FAMILIES" $R
+$MSPS render robust-slant --out "$DATA/robust-slant" --set dataset.n_shards=2 --set "$FAMILIES" $R
 
 for mode in dual scn pcn; do
   $MSPS train cpu --data "$DATA/train" --val "$DATA/val" --out "$RUNS/cpu-$mode" --threads 1 \
