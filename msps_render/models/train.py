@@ -222,3 +222,12 @@ def plot_metrics(jsonl: Path, png: Path) -> Path | None:
     fig.savefig(png, dpi=90)
     plt.close(fig)
     return png
+
+
+def export_checkpoint(src: str | Path, dst: str | Path, **info) -> Path:
+    """A slim copy for shipping: weights, config and provenance, without optimizer/RNG state."""
+    _, cfg, ck = load_checkpoint(src)
+    keep = {k: ck[k] for k in ("data_hash", "n_params", "val_mae_deg", "state") if k in ck}
+    model = DualCueNet(cfg.net_config())
+    model.load_state_dict(ck["model"])
+    return save_checkpoint(Path(dst), model, cfg, {**keep, **info})
