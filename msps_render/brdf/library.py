@@ -11,7 +11,6 @@ from __future__ import annotations
 import functools
 import logging
 import os
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -67,13 +66,10 @@ def _load_catalogue(path: str) -> Catalogue:
     from msps_render.brdf.analytic import MODELS
     from msps_render.scene.materials import FAMILIES
 
+    from msps_render.config_io import read_toml
+
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text())
-    except OSError as e:
-        raise InputError(p, f"cannot read material catalogue ({e.strerror})") from None
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(p, f"not valid TOML ({e})") from None
+    data = read_toml(p, "material catalogue")
     unknown = set(data) - {"version", "material"}
     if unknown:
         raise InputError(p, f"unknown key(s) {sorted(unknown)}; expected 'version' and [[material]] tables")

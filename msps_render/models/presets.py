@@ -1,13 +1,12 @@
 """Model presets (`models/*.toml`): network widths and training schedule, validated."""
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from msps_render.errors import InputError, format_validation_error
+from msps_render.errors import InputError
 
 MODEL_DIR = Path(__file__).resolve().parents[2] / "models"
 
@@ -51,7 +50,7 @@ class ModelConfig(_Cfg):
 
 
 def load_model_config(path_or_name: str | Path, overrides: list[str] = ()) -> ModelConfig:
-    from msps_render.pipeline.config import _coerce, _set_path, _unknown_keys
+    from msps_render.config_io import apply_overrides, read_toml, validate
 
     p = Path(path_or_name)
     if not p.is_file():
@@ -60,17 +59,4 @@ def load_model_config(path_or_name: str | Path, overrides: list[str] = ()) -> Mo
             known = sorted(q.stem for q in MODEL_DIR.glob("*.toml"))
             raise InputError(p, f"model config not found (presets: {', '.join(known)})")
         p = cand
-    try:
-        data = tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(p, f"not valid TOML ({e})") from None
-    for ov in overrides:
-        k, _, v = ov.partition("=")
-        _set_path(data, k.strip(), _coerce(v.strip()))
-    unknown = _unknown_keys(data, ModelConfig)
-    if unknown:
-        raise InputError(p, "; ".join(unknown))
-    try:
-        return ModelConfig.model_validate(data)
-    except Exception as e:
-        raise InputError(p, format_validation_error(e)) from None
+    return validate(ModelConfig, apply_overrides(read_toml(p, "model config"), overrides), p)

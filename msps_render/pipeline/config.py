@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from msps_render.errors import InputError, closest, format_validation_error
+from msps_render.config_io import apply_overrides, read_toml, set_path, validate
+from msps_render.errors import InputError
 from msps_render.scene.sample import SceneConfig
 
 PRESET_DIR = Path(__file__).resolve().parents[2] / "scenes"
@@ -76,21 +76,11 @@ class DatasetConfig(_Cfg):
         return [(f"{leaf}={v}", v) for v in self.sweep.values]
 
 
-def _set_path(data: dict, dotted: str, value) -> None:
-    keys = dotted.split(".")
-    d = data
-    for k in keys[:-1]:
-        d = d.setdefault(k, {})
-        if not isinstance(d, dict):
-            raise InputError(dotted, f"'{k}' is not a table")
-    d[keys[-1]] = value
-
-
 def condition_config(cfg: DatasetConfig, value) -> DatasetConfig:
     """The config of one sweep condition (the swept key set to `value`)."""
     data = cfg.model_dump(mode="json")
     data.pop("sweep", None)
-    _set_path(data, _qualify(cfg.sweep.key), value)
+    set_path(data, _qualify(cfg.sweep.key), value)
     return DatasetConfig.model_validate(data)
 
 
@@ -104,32 +94,6 @@ def _qualify(key: str) -> str:
     if top in DatasetSection.model_fields:
         return f"dataset.{key}"
     return key
-
-
-def _unknown_keys(data: Any, model: type[BaseModel], prefix: str = "") -> list[str]:
-    """Walk raw config data against the models; describe every unknown key with a suggestion."""
-    out = []
-    if not isinstance(data, dict):
-        return out
-    fields = model.model_fields
-    for k, v in data.items():
-        if k not in fields:
-            out.append(f"unknown key '{prefix}{k}'{closest(k, fields)}")
-            continue
-        ann = fields[k].annotation
-        for cand in (ann, *getattr(ann, "__args__", ())):
-            if isinstance(cand, type) and issubclass(cand, BaseModel):
-                out += _unknown_keys(v, cand, f"{prefix}{k}.")
-                break
-    return out
-
-
-def _coerce(text: str):
-    """`--set` values are TOML literals (30, 0.5, true, [0, 120], "x"); bare words are strings."""
-    try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        return text
 
 
 def resolve_preset(path_or_name: str | Path) -> Path:
@@ -146,26 +110,12 @@ def resolve_preset(path_or_name: str | Path) -> Path:
 def load_config(path_or_name: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> DatasetConfig:
     """Read a preset name or TOML path, apply `key=value` overrides, validate."""
     p = resolve_preset(path_or_name)
-    try:
-        data = tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(p, f"not valid TOML ({e})") from None
-    for ov in overrides:
-        if "=" not in ov:
-            raise InputError(f"--set {ov}", "expected key=value")
-        k, v = ov.split("=", 1)
-        _set_path(data, _qualify(k.strip()), _coerce(v.strip()))
+    data = apply_overrides(read_toml(p), overrides, _qualify)
     return validate_config(data, str(p))
 
 
 def validate_config(data: dict, source: str = "<config>") -> DatasetConfig:
-    unknown = _unknown_keys(data, DatasetConfig)
-    if unknown:
-        raise InputError(source, "; ".join(unknown))
-    try:
-        return DatasetConfig.model_validate(data)
-    except Exception as e:
-        raise InputError(source, format_validation_error(e)) from None
+    return validate(DatasetConfig, data, source)
 
 
 def config_json(cfg: DatasetConfig) -> str:

@@ -207,19 +207,7 @@ def environment_for_ratio(cfg: EnvironmentConfig, light_irradiance: float, rng: 
 
 def load_scene_config(path: str | Path) -> SceneConfig:
     """Read a SceneConfig from TOML: the `[scene]` table if present, else the whole file."""
-    import tomllib
+    from msps_render.config_io import read_toml, validate
 
-    from msps_render.errors import format_validation_error
-
-    p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text())
-    except OSError as e:
-        raise InputError(p, f"cannot read config ({e.strerror})") from None
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(p, f"not valid TOML ({e})") from None
-    data = data.get("scene", data)
-    try:
-        return SceneConfig.model_validate(data)
-    except Exception as e:
-        raise InputError(p, format_validation_error(e)) from None
+    data = read_toml(path)
+    return validate(SceneConfig, data.get("scene", data), path)

@@ -1,0 +1,81 @@
+"""Reading TOML configs into pydantic models with one-line, named errors.
+
+Shared by dataset presets (`pipeline.config`), model presets (`models.presets`),
+scene configs (`scene.sample`) and the material catalogue (`brdf.library`).
+"""
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any, Callable, TypeVar
+
+from pydantic import BaseModel
+
+from msps_render.errors import InputError, closest, format_validation_error
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def read_toml(path: str | Path, what: str = "config") -> dict:
+    p = Path(path)
+    try:
+        return tomllib.loads(p.read_text())
+    except OSError as e:
+        raise InputError(p, f"cannot read {what} ({e.strerror})") from None
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(p, f"not valid TOML ({e})") from None
+
+
+def set_path(data: dict, dotted: str, value) -> None:
+    keys = dotted.split(".")
+    d = data
+    for k in keys[:-1]:
+        d = d.setdefault(k, {})
+        if not isinstance(d, dict):
+            raise InputError(dotted, f"'{k}' is not a table")
+    d[keys[-1]] = value
+
+
+def coerce(text: str):
+    """`--set` values are TOML literals (30, 0.5, true, [0, 120], "x"); bare words are strings."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_overrides(data: dict, overrides, qualify: Callable[[str], str] = lambda k: k) -> dict:
+    for ov in overrides:
+        if "=" not in ov:
+            raise InputError(f"--set {ov}", "expected key=value")
+        k, v = ov.split("=", 1)
+        set_path(data, qualify(k.strip()), coerce(v.strip()))
+    return data
+
+
+def unknown_keys(data: Any, model: type[BaseModel], prefix: str = "") -> list[str]:
+    """Every key the model does not know, with a 'did you mean' suggestion."""
+    out: list[str] = []
+    if not isinstance(data, dict):
+        return out
+    fields = model.model_fields
+    for k, v in data.items():
+        if k not in fields:
+            out.append(f"unknown key '{prefix}{k}'{closest(k, fields)}")
+            continue
+        ann = fields[k].annotation
+        for cand in (ann, *getattr(ann, "__args__", ())):
+            if isinstance(cand, type) and issubclass(cand, BaseModel):
+                out += unknown_keys(v, cand, f"{prefix}{k}.")
+                break
+    return out
+
+
+def validate(model: type[M], data: dict, source: str | Path) -> M:
+    unknown = unknown_keys(data, model)
+    if unknown:
+        raise InputError(source, "; ".join(unknown))
+    try:
+        return model.model_validate(data)
+    except Exception as e:
+        raise InputError(source, format_validation_error(e)) from None
