@@ -9,7 +9,8 @@ import pytest
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
-def _variant_or_skip(name: str) -> str:
+def variant_or_skip(name: str) -> str:
+    """Set Mitsuba variant `name`, or skip the test when it is missing or its LLVM is unusable."""
     mi = pytest.importorskip("mitsuba")
     if name not in mi.variants():
         pytest.skip(f"Mitsuba variant {name} not built")
@@ -26,12 +27,12 @@ def _variant_or_skip(name: str) -> str:
 @pytest.fixture
 def rgb_variant() -> str:
     """The fast RGB variant (llvm_ad_rgb), or skip."""
-    return _variant_or_skip("llvm_ad_rgb")
+    return variant_or_skip("llvm_ad_rgb")
 
 
 @pytest.fixture
 def scalar_variant() -> str:
-    return _variant_or_skip("scalar_rgb")
+    return variant_or_skip("scalar_rgb")
 
 
 @pytest.fixture(autouse=True)

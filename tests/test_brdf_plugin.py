@@ -34,16 +34,10 @@ def tables(tmp_path_factory):
 
 
 def use_variant(name: str) -> None:
-    """Set a variant and register the plugin, or skip (like tests/conftest.py)."""
-    if name not in mi.variants():
-        pytest.skip(f"Mitsuba variant {name} not built")
-    if name.startswith("llvm"):
-        from msps_render.render.variant import probe_variant
+    """Set a variant and register the plugin, or skip (tests/conftest.py's helper)."""
+    from tests.conftest import variant_or_skip
 
-        ok, why = probe_variant(name)
-        if not ok:
-            pytest.skip(f"{name} unusable here: {why}")
-    mi.set_variant(name)
+    variant_or_skip(name)
     from msps_render.brdf.plugin import register
 
     register()

@@ -21,9 +21,9 @@ from msps_render.scene.spec import CameraSpec, EnvSpec, IntegratorSpec, SceneSpe
 
 @pytest.fixture
 def spectral_variant() -> str:
-    from tests.conftest import _variant_or_skip
+    from tests.conftest import variant_or_skip
 
-    return _variant_or_skip("llvm_ad_spectral")
+    return variant_or_skip("llvm_ad_spectral")
 
 
 @pytest.fixture

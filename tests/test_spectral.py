@@ -31,9 +31,9 @@ LEDS = ["led:630:20", "led:530:30", "led:465:20"]
 
 @pytest.fixture
 def spectral_variant() -> str:
-    from tests.conftest import _variant_or_skip
+    from tests.conftest import variant_or_skip
 
-    return _variant_or_skip("llvm_ad_spectral")
+    return variant_or_skip("llvm_ad_spectral")
 
 
 def sphere_spec(lights, mode="rgb", res=64, spp=64, rho=1.0, camera=None):
