@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Reproduce the dual-cue vs ablations vs Lambertian comparison on toolkit-generated data
-# (docs/reproducing.md). ~55 min on a 2-core CPU: ~5 min rendering, 40 min of training
-# (the three models train concurrently, one thread each), ~3 min evaluation.
+# (docs/reproducing.md). ~85 min on a 2-core CPU: ~5 min rendering, 40 min of training
+# (the three models train concurrently, one thread each), ~30 min for the equal-steps
+# dual-cue run, ~3 min evaluation.
 # Usage: bash benchmarks/reproduce.sh [DATA_DIR] [RUN_DIR]
 set -euo pipefail
 DATA=${1:-data}
@@ -22,12 +23,16 @@ for mode in dual scn pcn; do
     --set net.mode=$mode --set train.max_minutes=40 --set train.val_every=300 --set train.val_max_patches=1500 &
 done
 wait
+# the dual net again, for as many steps as the SCN-only run made (equal-steps comparison)
+STEPS=$(python3 -c "import json; print(json.loads(open('$RUNS/cpu-scn/metrics.jsonl').read().splitlines()[-1])['step'])")
+$MSPS train cpu --data "$DATA/train" --val "$DATA/val" --out "$RUNS/cpu-dual-steps" --threads 2 \
+  --set train.max_steps=$STEPS --set train.val_every=300 --set train.val_max_patches=1500
 
-for mode in dual scn pcn; do
+for mode in dual-steps dual scn pcn; do
   $MSPS eval --data "$DATA/test" --checkpoint "$RUNS/cpu-$mode/best.pt" --out "$RUNS/eval-$mode"
 done
 $MSPS eval --data "$DATA/test" --method lambertian --out "$RUNS/eval-lambertian"
 for set in robust-env robust-slant; do
-  $MSPS eval --data "$DATA/$set" --checkpoint "$RUNS/cpu-dual/best.pt" --out "$RUNS/eval-$set-dual" --max-patches 1500
+  $MSPS eval --data "$DATA/$set" --checkpoint "$RUNS/cpu-dual-steps/best.pt" --out "$RUNS/eval-$set-dual" --max-patches 1500
   $MSPS eval --data "$DATA/$set" --method lambertian --out "$RUNS/eval-$set-lambertian" --max-patches 1500
 done
