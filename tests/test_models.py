@@ -301,3 +301,25 @@ def test_predict_and_eval_cli(tiny_dataset, tmp_path):
     rep = json.loads((tmp_path / "rep" / "metrics.json").read_text())
     assert 0 < rep["conditions"][""]["patches"]["mae_deg"] < 90
     assert rep["conditions"][""]["per_object"]
+
+
+def test_shipped_checkpoint_predicts_a_rendered_object(rgb_variant, tmp_path):
+    """`msps predict` works out of the box: the shipped cpu model on a fresh paper-like render."""
+    from msps_render.models.baseline import angular_error_deg, lambertian_ps
+    from msps_render.models.predict import default_checkpoint, predict_image
+    from msps_render.models.train import load_checkpoint
+    from msps_render.render import render_frame
+    from msps_render.scene.sample import SceneConfig, sample_scene
+
+    model, cfg, ck = load_checkpoint(default_checkpoint(), expect_preset="cpu")
+    scfg = SceneConfig.model_validate({"camera": {"width": 96, "height": 96},
+                                       "materials": {"families": ["diffuse", "plastic", "roughplastic"]}})
+    errs, base = [], []
+    for seed in range(3):
+        f = render_frame(sample_scene(scfg, np.random.default_rng(100 + seed)), rgb_variant)
+        n = predict_image(model, f.image, f.mask)
+        errs.append(angular_error_deg(n[f.mask], f.normal[f.mask]).mean())
+        base.append(angular_error_deg(lambertian_ps(f.image, f.light_dirs, f.crosstalk)[f.mask],
+                                      f.normal[f.mask]).mean())
+    print(f"shipped model MAE {np.mean(errs):.2f} deg vs Lambertian {np.mean(base):.2f} deg")
+    assert np.mean(errs) < 10.0 and np.mean(errs) < 0.7 * np.mean(base)
