@@ -102,7 +102,7 @@ OnDone = Callable[[Task, dict], None]
 
 
 def run_local(tasks: Iterable[Task], ws: WorkerSettings, workers: int, on_done: OnDone,
-              max_tasks_per_child: int = 32) -> None:
+              max_tasks_per_child: int | None = None) -> None:
     tasks = list(tasks)
     if workers <= 1:  # in-process: simplest to debug, same results
         for t in tasks:

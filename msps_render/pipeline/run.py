@@ -23,7 +23,7 @@ def _versions(variant: str) -> dict:
 
 def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, scheduler: str | None = None,
                    resume: bool = False, force: bool = False, variant: str | None = None,
-                   threads: int | None = None, progress: bool = True, max_tasks_per_child: int = 32) -> dict:
+                   threads: int | None = None, progress: bool = True, max_tasks_per_child: int | None = None) -> dict:
     """Render (or finish) the dataset `cfg` into `out`. Returns the final manifest."""
     from msps_render.render.variant import resolve_variant
 

@@ -78,7 +78,7 @@ def _envmap(mi, spec: SceneSpec) -> dict:
 
     e = spec.environment
     img = envmap_pixels(e.source, e.seed)
-    return {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32)),
+    return {"type": "envmap", "bitmap": mi.Bitmap(np.array(img, dtype=np.float32, order="C", copy=True)),  # writeable copy: Bitmap refuses read-only arrays
             "scale": float(e.scale), "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], e.rotation_deg)}
 
 
