@@ -14,6 +14,7 @@ from msps_render.errors import InputError
 def no_merl_env(monkeypatch, tmp_path):
     monkeypatch.delenv("MSPS_MERL_DIR", raising=False)
     monkeypatch.setenv("MSPS_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("MSPS_BRDF_DIR", str(library.REPO_BRDF_DIR))  # the built-in nbrdf weights stay
     monkeypatch.setattr(library, "REPO_BRDF_DIR", tmp_path / "repo-brdf")  # no files dropped by a user
 
 
@@ -39,32 +40,40 @@ def test_default_catalogue_lists_merl_generated_and_analytic():
                                                              "roughconductor", "principled"}
 
 
-def test_without_merl_files_generated_tables_are_used_and_named(no_merl_env, caplog):
-    library._warn_generated.cache_clear()
+def test_without_measured_materials_there_is_no_silent_fallback(no_merl_env, monkeypatch, tmp_path):
+    """No MERL files and no built-in weights: an error, not generated stand-ins."""
+    monkeypatch.setenv("MSPS_BRDF_DIR", str(tmp_path / "empty"))
+    with pytest.raises(InputError, match="no measured materials available"):
+        library.sample_materials(np.random.default_rng(0), 4, merl_fraction=1.0)
+
+
+def test_generated_tables_only_when_asked_and_named(no_merl_env, caplog):
     with caplog.at_level(logging.INFO, logger="msps_render.brdf.library"):
-        mats = library.sample_materials(np.random.default_rng(0), 4, merl_fraction=1.0)
+        mats = library.sample_materials(np.random.default_rng(0), 4, merl_fraction=1.0, measured="generated")
     assert len(mats) == 4 and all(m.kind == "merl" for m in mats)
     assert all(m.name.startswith("generated:") for m in mats)
     assert len({m.name for m in mats}) == 4
-    assert "no real MERL files" in caplog.text and "materials: generated:" in caplog.text
+    assert "materials: generated:" in caplog.text
     path = library.resolve_table(mats[0])
     assert path.is_file() and path.stat().st_size == merl.FILE_BYTES
     assert library.resolve_table(mats[0]) == path  # cached, same file
 
 
 def test_real_merl_files_are_found_and_preferred(no_merl_env, merl_dir):
-    mats = library.sample_materials(np.random.default_rng(1), 2, merl_fraction=1.0, merl_dir=str(merl_dir))
+    mats = library.sample_materials(np.random.default_rng(1), 2, merl_fraction=1.0, merl_dir=str(merl_dir),
+                                    measured="merl")
     assert sorted(m.name for m in mats) == ["merl:blue-fabric", "merl:white-paint"]
     for m in mats:
         assert library.resolve_table(m) == (merl_dir / f"{m.name[5:]}.binary").resolve()
     # asking for more measured materials than files: the rest are analytic, still distinct
-    mats = library.sample_materials(np.random.default_rng(1), 5, merl_fraction=1.0, merl_dir=str(merl_dir))
+    mats = library.sample_materials(np.random.default_rng(1), 5, merl_fraction=1.0, merl_dir=str(merl_dir),
+                                    measured="merl")
     assert sum(m.kind == "merl" for m in mats) == 2 and len({m.name for m in mats}) == 5
 
 
 def test_env_var_merl_dir_and_catalogue_ids(no_merl_env, merl_dir, monkeypatch):
     monkeypatch.setenv("MSPS_MERL_DIR", str(merl_dir))
-    mats = library.sample_materials(np.random.default_rng(2), 1, merl_fraction=1.0)
+    mats = library.sample_materials(np.random.default_rng(2), 1, merl_fraction=1.0, measured="merl")
     assert mats[0].name.startswith("merl:")
     from msps_render.scene.spec import MaterialSpec
 

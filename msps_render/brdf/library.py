@@ -1,10 +1,14 @@
 """The material library: catalogue loading, MERL file discovery and material sampling.
 
 `sample_materials(rng, n, ...)` draws `n` distinct materials, a configurable
-share of them measured (`kind="merl"`). Measured materials are real MERL files
-when they can be found, otherwise MERL-format tables generated from analytic
-models (named `generated:<name>` so every log, SceneSpec and shard says which
-was used). Nothing is downloaded.
+share of them measured (`kind="merl"`). A measured material is the real MERL
+file when one can be found, otherwise the built-in Neural-BRDF fit of the same
+material (`brdf/nbrdf/`, baked into a MERL table on first use), named `merl:<name>`
+or `nbrdf:<name>` so every log, SceneSpec and shard says which was used.
+MERL-format tables generated from analytic models (`generated:<name>`) are used
+only when asked for (`measured="generated"`), never as a silent fallback.
+Held-out materials (`brdf/split.toml`) are excluded from training corpora.
+Nothing is downloaded.
 """
 from __future__ import annotations
 
@@ -23,7 +27,15 @@ log = logging.getLogger(__name__)
 
 REPO_BRDF_DIR = Path(__file__).resolve().parents[2] / "brdf"
 DEFAULT_CATALOGUE = REPO_BRDF_DIR / "catalogue.toml"
+DEFAULT_SPLIT = REPO_BRDF_DIR / "split.toml"
 SOURCES = ("merl", "generated", "analytic")
+MEASURED = ("auto", "merl", "nbrdf", "generated")  # where measured materials come from
+HOLDOUT = ("train", "test", "all")  # which side of the held-out split a corpus draws from
+
+
+def brdf_root() -> Path:
+    """The material library directory (`brdf/` of the checkout, or $MSPS_BRDF_DIR)."""
+    return Path(os.environ["MSPS_BRDF_DIR"]) if os.environ.get("MSPS_BRDF_DIR") else REPO_BRDF_DIR
 
 
 @dataclass(frozen=True)
@@ -136,10 +148,54 @@ def available_merl(cat: Catalogue, merl_dir: str | os.PathLike | None = None) ->
     return out
 
 
-@functools.lru_cache(maxsize=None)
-def _warn_generated(reason: str) -> None:
-    log.warning("no real MERL files (%s): measured materials are MERL-format tables generated from "
-                "analytic models, named 'generated:<name>'", reason)
+@functools.lru_cache(maxsize=8)
+def _read_split(path: str) -> frozenset[str]:
+    from msps_render.config_io import read_toml
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "held-out material split file not found")
+    data = read_toml(p, "material split")
+    unknown = set(data) - {"version", "test"}
+    if unknown:
+        raise InputError(p, f"unknown key(s) {sorted(unknown)}; expected 'version' and 'test'")
+    test = data.get("test")
+    if not isinstance(test, list) or not all(isinstance(x, str) for x in test):
+        raise InputError(p, "needs test = [\"<material name>\", ...]")
+    return frozenset(test)
+
+
+def held_out(split_file: str | os.PathLike | None = None) -> frozenset[str]:
+    """Names of the held-out (test-only) materials, validated against the default catalogue."""
+    p = Path(split_file) if split_file else DEFAULT_SPLIT
+    names = _read_split(str(p.resolve()))
+    return names
+
+
+def measured_pool(cat: Catalogue, measured: str = "auto", merl_dir: str | os.PathLike | None = None
+                  ) -> list[MaterialSpec]:
+    """Every measured material available under `measured`:
+
+    'auto' = per catalogue entry the real MERL file if found, else the built-in
+    Neural-BRDF fit; 'merl' = real files only; 'nbrdf' = built-in fits only;
+    'generated' = the analytic stand-ins (explicit, never a fallback).
+    """
+    from msps_render.brdf import nbrdf
+
+    if measured not in MEASURED:
+        raise InputError("materials.measured", f"unknown source '{measured}' (known: {', '.join(MEASURED)})")
+    if measured == "generated":
+        return [_measured_spec(e, None) for e in cat.by_source("generated")]
+    dirs = merl_search_dirs(merl_dir)
+    pool = []
+    for e in cat.by_source("merl"):
+        real = find_merl(e.target, dirs) if measured in ("auto", "merl") else None
+        if real is not None:
+            pool.append(_measured_spec(e, real))
+        elif measured in ("auto", "nbrdf") and nbrdf.weights_path(Path(e.target).stem) is not None:
+            stem = Path(e.target).stem
+            pool.append(MaterialSpec(name=f"nbrdf:{e.name}", kind="merl", params={"table": f"nbrdf:{stem}"}))
+    return pool
 
 
 def _measured_spec(e: Entry, path: Path | None) -> MaterialSpec:
@@ -151,17 +207,24 @@ def _measured_spec(e: Entry, path: Path | None) -> MaterialSpec:
     return MaterialSpec(name=f"generated:{e.name}", kind="merl", params=params)
 
 
+def _base_name(m: MaterialSpec) -> str:
+    return m.name.split(":", 1)[1] if ":" in m.name else m.name
+
+
 def sample_materials(rng: np.random.Generator, n: int, catalogue: str | os.PathLike | None = None,
                      merl_fraction: float = 0.5, merl_dir: str | os.PathLike | None = None,
-                     families: list[str] | None = None, require_merl: bool | None = None) -> list[MaterialSpec]:
+                     families: list[str] | None = None, require_merl: bool | None = None,
+                     measured: str = "auto", holdout: str = "train",
+                     split_file: str | os.PathLike | None = None) -> list[MaterialSpec]:
     """Draw `n` distinct materials; each is measured with probability `merl_fraction`.
 
-    Measured = real MERL files found in `merl_search_dirs(merl_dir)`; if none are
-    found, generated MERL-format stand-ins (with one warning). Analytic ones use
-    `families` (config) or the catalogue's analytic entries, drawn by
-    `sample_analytic`. `require_merl` (default: true when `merl_dir` or
-    $MSPS_MERL_DIR is set and merl_fraction > 0) makes missing MERL files an
-    `InputError` listing every place searched. Consumes `rng` in a fixed order.
+    Measured materials come from `measured_pool(measured)`, restricted by
+    `holdout` to the training side ('train': held-out materials excluded),
+    the held-out side ('test') or everything ('all'). An empty pool is an
+    InputError, never a silent substitution. `require_merl` (default: true when
+    `merl_dir` or $MSPS_MERL_DIR is set) makes missing real MERL files an error
+    listing every place searched. Analytic ones use `families` (config) or the
+    catalogue's analytic entries. Consumes `rng` in a fixed order.
     """
     from msps_render.scene.materials import sample_analytic
 
@@ -169,32 +232,35 @@ def sample_materials(rng: np.random.Generator, n: int, catalogue: str | os.PathL
         raise ValueError(f"need at least one material, got n={n}")
     if not 0.0 <= merl_fraction <= 1.0:
         raise InputError("materials.merl_fraction", f"must be in [0, 1], got {merl_fraction}")
+    if holdout not in HOLDOUT:
+        raise InputError("materials.holdout", f"unknown value '{holdout}' (known: {', '.join(HOLDOUT)})")
     cat = load_catalogue(catalogue)
     if require_merl is None:
         require_merl = merl_fraction > 0 and bool(merl_dir or os.environ.get("MSPS_MERL_DIR"))
     pool: list[MaterialSpec] = []
     if merl_fraction > 0:
-        found = available_merl(cat, merl_dir)
-        if found:
-            pool = [_measured_spec(e, p) for e, p in found]
-        else:
+        if require_merl and measured in ("auto", "merl") and not available_merl(cat, merl_dir):
+            where = merl_dir or os.environ.get("MSPS_MERL_DIR")
+            missing = "" if Path(where).is_dir() else " (directory does not exist)"
             searched = ", ".join(str(d) for d in merl_search_dirs(merl_dir))
-            if require_merl:
-                where = merl_dir or os.environ.get("MSPS_MERL_DIR")
-                missing = "" if Path(where).is_dir() else " (directory does not exist)"
-                raise InputError(where, f"no MERL .binary files of the catalogue found{missing}; "
-                                        f"searched: {searched}")
-            pool = [_measured_spec(e, None) for e in cat.by_source("generated")]
-            _warn_generated(f"searched {searched}")
+            raise InputError(where, f"no MERL .binary files of the catalogue found{missing}; searched: {searched}")
+        pool = measured_pool(cat, measured, merl_dir)
+        if holdout != "all" and measured != "generated":
+            test = held_out(split_file)
+            pool = [m for m in pool if (_base_name(m) in test) == (holdout == "test")]
+        if not pool:
+            raise InputError(cat.path, f"no measured materials available (measured='{measured}', "
+                                       f"holdout='{holdout}'); add MERL files or the built-in brdf/nbrdf/ weights, "
+                                       "or set materials.merl_fraction = 0")
     n_measured = min(int(rng.binomial(n, merl_fraction)), len(pool)) if pool else 0
-    measured = [pool[i] for i in rng.choice(len(pool), size=n_measured, replace=False)] if n_measured else []
+    measured_mats = [pool[i] for i in rng.choice(len(pool), size=n_measured, replace=False)] if n_measured else []
     fams = list(families) if families else [e.target for e in cat.by_source("analytic")]
     k = n - n_measured
     if k and not fams:
         raise InputError(cat.path, "no analytic families to draw from (and not enough measured materials)")
     picks = rng.choice(len(fams), size=k, replace=len(fams) < k) if k else []
     analytic = [sample_analytic(fams[int(i)], rng) for i in picks]
-    mats = measured + analytic
+    mats = measured_mats + analytic
     order = rng.permutation(len(mats))
     out = [mats[int(i)] for i in order]
     log.info("materials: %s", ", ".join(m.name for m in out))
@@ -220,6 +286,14 @@ def resolve_table(m: MaterialSpec) -> Path:
     table = m.params.get("table")
     if not isinstance(table, str) or not table:
         raise InputError(f"material '{m.name}'", "a 'merl' material needs params.table (path or id)")
+    if table.startswith("nbrdf:"):
+        from msps_render.brdf import nbrdf
+
+        w = nbrdf.weights_path(table[6:])
+        if w is None:
+            raise InputError(f"material '{m.name}'", f"no built-in Neural-BRDF weights '{table[6:]}.h5' in "
+                                                     f"{nbrdf.builtin_dir()}")
+        return nbrdf.baked_table(w)
     if table.startswith("generated"):
         model = m.params.get("model")
         if not isinstance(model, str):

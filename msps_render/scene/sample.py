@@ -53,6 +53,12 @@ class MaterialsConfig(_Cfg):
     families: list[str] = Field(default_factory=lambda: ["diffuse", "plastic", "roughplastic",
                                                          "roughconductor", "principled"])
     merl_fraction: float = Field(0.0, ge=0.0, le=1.0, description="share of measured (MERL) materials")
+    measured: Literal["auto", "merl", "nbrdf", "generated"] = Field(
+        "auto", description="measured materials: real MERL file if found else built-in Neural-BRDF fit "
+                            "(auto), only one of them, or analytic stand-ins (generated)")
+    holdout: Literal["train", "test", "all"] = Field(
+        "train", description="held-out materials (brdf/split.toml): excluded (train), only (test), or all")
+    split_file: str | None = Field(None, description="held-out split (default brdf/split.toml)")
     catalogue: str | None = None
     merl_dir: str | None = None
     split: Literal["field", "planes"] = "field"
@@ -131,7 +137,8 @@ def _sample_materials(cfg: MaterialsConfig, n: int, rng: np.random.Generator):
         from msps_render.brdf.library import sample_materials
 
         return tuple(sample_materials(rng, n, catalogue=cfg.catalogue, merl_fraction=cfg.merl_fraction,
-                                      merl_dir=cfg.merl_dir, families=cfg.families))
+                                      merl_dir=cfg.merl_dir, families=cfg.families, measured=cfg.measured,
+                                      holdout=cfg.holdout, split_file=cfg.split_file))
     fams = rng.choice(cfg.families, size=n, replace=len(cfg.families) < n)
     return tuple(sample_analytic(str(f), rng) for f in fams)
 
