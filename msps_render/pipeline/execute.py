@@ -43,7 +43,7 @@ def render_shard(task: Task, ws: WorkerSettings) -> dict:
     pats, fidx, frames = [], [], []
     for j, rng in enumerate(frame_rngs(task, d.frames_per_shard)):
         fseed = frame_seed(task, j)
-        spec = sample_scene(cfg.scene, rng, seed=fseed)
+        spec = sample_scene(cfg.scene, rng, seed=fseed, frame_index=task.shard_in_condition * d.frames_per_shard + j)
         tr = time.perf_counter()
         frame = render_frame(spec, variant=ws.variant, threads=ws.threads)
         render_s += time.perf_counter() - tr

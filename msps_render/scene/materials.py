@@ -41,6 +41,12 @@ def _roughconductor(rng):
             "alpha": float(rng.uniform(0.08, 0.4))}
 
 
+def _grey(rng):
+    """Grey Lambertian (the control of the unseen-shape tests: a classic PS method's best case)."""
+    g = float(rng.uniform(0.5, 0.8))
+    return {"reflectance": (g, g, g)}
+
+
 def _principled(rng):
     return {"base_color": _albedo(rng), "roughness": float(rng.uniform(0.2, 0.9)),
             "metallic": float(rng.choice([0.0, 0.0, rng.uniform(0.0, 1.0)])),
@@ -53,14 +59,16 @@ FAMILIES = {
     "roughplastic": _roughplastic,
     "roughconductor": _roughconductor,
     "principled": _principled,
+    "grey": _grey,
 }
+KIND = {"grey": "diffuse"}  # families rendered by another family's BSDF
 
 
 def sample_analytic(family: str, rng: np.random.Generator, name: str | None = None) -> MaterialSpec:
     if family not in FAMILIES:
         raise InputError("materials.families", f"unknown material family '{family}'"
                          f"{closest(family, FAMILIES)}; known: {', '.join(FAMILIES)}")
-    return MaterialSpec(name=name or family, kind=family, params=FAMILIES[family](rng))
+    return MaterialSpec(name=name or family, kind=KIND.get(family, family), params=FAMILIES[family](rng))
 
 
 def lambertian(albedo=(0.8, 0.8, 0.8), name: str = "lambertian") -> MaterialSpec:

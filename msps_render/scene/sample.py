@@ -29,6 +29,10 @@ class ShapeConfig(_Cfg):
     source: Literal["blobby", "mesh", "sphere", "primitive"] = "blobby"
     primitives: list[str] = Field(default_factory=lambda: ["torus", "capsule", "superellipsoid", "vase"])
     meshes: list[str] = Field(default_factory=list, description="paths or globs (source='mesh')")
+    mesh_order: Literal["random", "cycle"] = Field(
+        "random", description="source='mesh': draw a mesh per frame (random) or take them in turn (cycle: "
+                              "frame k of each condition gets mesh k mod N, so every mesh gets the same "
+                              "number of frames)")
     lmax: int = Field(4, ge=1, le=8)
     amplitude: float = Field(0.3, ge=0.0, le=0.6)
     subdivisions: int = Field(5, ge=2, le=7)
@@ -83,13 +87,32 @@ class LightsConfig(_Cfg):
     distance: float | None = Field(None, gt=1.0)
     jitter_deg: float = Field(0.0, ge=0.0, le=20.0)
     intensity_jitter: float = Field(0.0, ge=0.0, lt=1.0)
+    slant_range_deg: tuple[float, float] | None = Field(
+        None, description="draw the slant per frame uniformly in [lo, hi] deg (robust corpora); "
+                          "overrides slant_deg")
+
+    @field_validator("slant_range_deg")
+    @classmethod
+    def _range(cls, v):
+        if v is not None and not (0.0 < v[0] <= v[1] < 90.0):
+            raise ValueError(f"slant_range_deg must satisfy 0 < lo <= hi < 90, got {list(v)}")
+        return v
 
 
 class EnvironmentConfig(_Cfg):
     enabled: bool = False
     source: str = "procedural"
     ratio: float = Field(0.1, ge=0.0, description="env irradiance / coloured-light irradiance")
+    ratio_range: tuple[float, float] | None = Field(
+        None, description="draw the ratio per frame uniformly in [lo, hi] (robust corpora); overrides ratio")
     random_rotation: bool = True
+
+    @field_validator("ratio_range")
+    @classmethod
+    def _range(cls, v):
+        if v is not None and not (0.0 <= v[0] <= v[1]):
+            raise ValueError(f"ratio_range must satisfy 0 <= lo <= hi, got {list(v)}")
+        return v
 
 
 class SceneConfig(_Cfg):
@@ -106,7 +129,7 @@ class SceneConfig(_Cfg):
     sensor: SensorConfig | None = None
 
 
-def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator) -> ShapeSpec:
+def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator, frame_index: int | None = None) -> ShapeSpec:
     rot = S.random_rotation(rng) if cfg.random_rotation else ShapeSpec.model_fields["rotation"].default
     if cfg.source == "sphere":
         return ShapeSpec(kind="sphere", name="sphere", radius=cfg.radius)
@@ -114,7 +137,10 @@ def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator) -> ShapeSpec:
         paths = cfg.mesh_paths()
         if not paths:
             raise InputError("shape.meshes", "source 'mesh' needs at least one mesh path")
-        path = paths[int(rng.integers(len(paths)))]
+        k = int(rng.integers(len(paths)))
+        if cfg.mesh_order == "cycle" and frame_index is not None:
+            k = frame_index % len(paths)
+        path = paths[k]
         return ShapeSpec(kind="mesh", name=Path(path).stem, path=str(Path(path).resolve()),
                          rotation=rot, radius=cfg.radius)
     if cfg.source == "primitive":
@@ -143,9 +169,14 @@ def _sample_materials(cfg: MaterialsConfig, n: int, rng: np.random.Generator):
     return tuple(sample_analytic(str(f), rng) for f in fams)
 
 
-def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = None) -> SceneSpec:
-    """Draw one scene. Consumes `rng` in a fixed order (shape, materials, split, lights, env)."""
-    shape = _sample_shape(cfg.shape, rng)
+def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = None,
+                 frame_index: int | None = None) -> SceneSpec:
+    """Draw one scene. Consumes `rng` in a fixed order (shape, materials, split, lights, env).
+
+    `frame_index` (the frame's position in its condition) lets `shape.mesh_order = "cycle"`
+    give every mesh the same number of frames; it is otherwise unused.
+    """
+    shape = _sample_shape(cfg.shape, rng, frame_index)
     if shape.kind == "sphere":
         n = 1
     else:
@@ -163,13 +194,17 @@ def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = 
                                                       f"{len(lc.tilts_deg)} light tilts")
         spectra, camera_response = sc.lights, sc.camera
         crosstalk = effective_crosstalk(sc.lights, sc.camera)
-    lights = L.three_lights(lc.slant_deg, lc.tilts_deg, crosstalk, lc.irradiance, lc.kind, lc.distance,
+    slant = float(rng.uniform(*lc.slant_range_deg)) if lc.slant_range_deg is not None else lc.slant_deg
+    lights = L.three_lights(slant, lc.tilts_deg, crosstalk, lc.irradiance, lc.kind, lc.distance,
                             rng=rng, jitter_deg=lc.jitter_deg, intensity_jitter=lc.intensity_jitter)
     if spectra is not None:
         lights = tuple(l.model_copy(update={"spectrum": s}) for l, s in zip(lights, spectra))
     env = None
-    if cfg.environment.enabled and cfg.environment.ratio > 0:
-        env = environment_for_ratio(cfg.environment, lights_plane_irradiance(lights), rng)
+    ec = cfg.environment
+    if ec.enabled and ec.ratio_range is not None:
+        ec = ec.model_copy(update={"ratio": float(rng.uniform(*ec.ratio_range))})
+    if ec.enabled and ec.ratio > 0:
+        env = environment_for_ratio(ec, lights_plane_irradiance(lights), rng)
     integ = cfg.integrator.model_copy(update={"seed": int(rng.integers(2**31 - 1))})
     return SceneSpec(shape=shape, split=split, materials=materials, lights=lights, environment=env,
                      camera=cfg.camera, integrator=integ, mode=cfg.mode, camera_response=camera_response,
