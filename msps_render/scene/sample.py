@@ -26,8 +26,11 @@ class _Cfg(BaseModel):
 
 
 class ShapeConfig(_Cfg):
-    source: Literal["blobby", "mesh", "sphere", "primitive"] = "blobby"
+    source: Literal["blobby", "mesh", "sphere", "primitive", "procedural"] = "blobby"
     primitives: list[str] = Field(default_factory=lambda: ["torus", "capsule", "superellipsoid", "vase"])
+    families: list[str] = Field(default_factory=lambda: ["mixed"],
+                                description="source='procedural': shape families, one drawn per shape "
+                                            "('mixed' = all: detailed, creased, concave, thin, composite)")
     meshes: list[str] = Field(default_factory=list, description="paths or globs (source='mesh')")
     mesh_order: Literal["random", "cycle"] = Field(
         "random", description="source='mesh': draw a mesh per frame (random) or take them in turn (cycle: "
@@ -38,8 +41,18 @@ class ShapeConfig(_Cfg):
     subdivisions: int = Field(5, ge=2, le=7)
     radius: float = Field(0.95, gt=0, le=1.0)
     random_rotation: bool = True
-    n_shapes: int | None = Field(None, ge=1, description="blobby: draw from a fixed pool of this many shapes")
+    n_shapes: int | None = Field(None, ge=1, description="blobby/procedural: draw from a fixed pool of this many shapes")
     pool_seed: int = 0
+
+    @field_validator("families")
+    @classmethod
+    def _known_families(cls, v):
+        from msps_render.scene.families import expand_families
+
+        if not v:
+            raise ValueError("families must name at least one shape family")
+        expand_families(v)  # raises on unknown names, listing the known ones
+        return v
 
     def mesh_paths(self) -> list[str]:
         out: list[str] = []
@@ -146,6 +159,17 @@ def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator, frame_index: int |
     if cfg.source == "primitive":
         name = str(rng.choice(cfg.primitives))
         return ShapeSpec(kind="primitive", name=name, params=S.sample_primitive_params(name, rng),
+                         rotation=rot, radius=cfg.radius)
+    if cfg.source == "procedural":
+        from msps_render.scene.families import expand_families, sample_family_params
+
+        fams = expand_families(cfg.families)
+        sub = rng
+        if cfg.n_shapes:  # a fixed pool of procedural shapes (index -> same family and seed)
+            idx = int(rng.integers(cfg.n_shapes))
+            sub = np.random.default_rng([cfg.pool_seed, idx, 0x9F])
+        name = fams[int(sub.integers(len(fams)))]
+        return ShapeSpec(kind="procedural", name=name, params=sample_family_params(name, sub),
                          rotation=rot, radius=cfg.radius)
     if cfg.n_shapes:  # a fixed pool, like the 10-shape Blobby dataset (train/val split by index)
         idx = int(rng.integers(cfg.n_shapes))

@@ -1,5 +1,8 @@
 """Geometry: procedural blobby shapes, user meshes, and material parts.
 
+Procedural shape families beyond blobs (detailed, creased, concave, thin,
+composite) live in `msps_render.scene.families` (kind "procedural").
+
 Everything here is numpy/trimesh; Mitsuba only sees the final arrays (meshes
 go to it from memory, never through temp files).
 
@@ -244,6 +247,10 @@ def build_mesh(shape: ShapeSpec) -> TriMesh:
         v, f = load_mesh_file(shape.path)
     elif shape.kind == "primitive":
         v, f = orient_outward(*PRIMITIVES[shape.name](dict(shape.params)))
+    elif shape.kind == "procedural":
+        from msps_render.scene.families import procedural_mesh
+
+        v, f = procedural_mesh(shape.name, dict(shape.params))
     else:
         raise ValueError("the analytic sphere has no mesh; the renderer uses Mitsuba's sphere")
     f = clean_faces(v, f)
@@ -255,7 +262,12 @@ def build_mesh(shape: ShapeSpec) -> TriMesh:
     v, f = v[used], remap[f]
     R = np.asarray(shape.rotation, dtype=np.float64)
     v = normalise(v, shape.radius) @ R.T
-    n = vertex_normals(v, f)
+    if shape.kind == "procedural":  # keep creases sharp: split vertices across sharp edges
+        from msps_render.scene.families import crease_normals
+
+        v, f, n = crease_normals(v, f)
+    else:
+        n = vertex_normals(v, f)
     return TriMesh(v.astype(np.float32), f.astype(np.uint32), n.astype(np.float32))
 
 

@@ -106,16 +106,18 @@ class MaterialSpec(_Strict):
 class ShapeSpec(_Strict):
     """Geometry. `blobby`: radially displaced sphere; `mesh`: a file; `sphere`: analytic;
     `primitive`: a procedural non-blobby shape (torus, capsule, superellipsoid, vase) named by
-    `name` with `params`, for test sets of shapes unlike the training blobs."""
+    `name` with `params`, for test sets of shapes unlike the training blobs; `procedural`: a
+    seeded shape family (`name` in `families.SHAPE_FAMILIES`, params {"seed", "version"}), the
+    mesh is a deterministic function of (name, seed, version)."""
 
-    kind: Literal["blobby", "mesh", "sphere", "primitive"]
+    kind: Literal["blobby", "mesh", "sphere", "primitive", "procedural"]
     name: str = ""
     path: str | None = None  # mesh only
     sh_coeffs: tuple[float, ...] = ()  # blobby: real SH coefficients, l = 1..lmax
     subdivisions: int = Field(5, ge=1, le=7)  # blobby icosphere level
     rotation: tuple[Vec3, Vec3, Vec3] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     radius: float = Field(1.0, gt=0, le=1.0)  # scale of the normalised shape
-    params: dict[str, float] = Field(default_factory=dict)  # primitive only
+    params: dict[str, float] = Field(default_factory=dict)  # primitive / procedural
 
     @model_validator(mode="after")
     def _check(self) -> "ShapeSpec":
@@ -126,6 +128,13 @@ class ShapeSpec(_Strict):
 
             if self.name not in PRIMITIVES:
                 raise ValueError(f"unknown primitive '{self.name}' (known: {', '.join(PRIMITIVES)})")
+        if self.kind == "procedural":
+            from msps_render.scene.families import SHAPE_FAMILIES, unknown_family_message
+
+            if self.name not in SHAPE_FAMILIES:
+                raise ValueError(unknown_family_message(self.name))
+            if "seed" not in self.params:
+                raise ValueError(f"procedural shape '{self.name}' needs params.seed")
         return self
 
 
