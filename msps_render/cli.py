@@ -13,7 +13,7 @@ from typing import Optional
 
 import typer
 
-from msps_render.errors import InputError
+from msps_render.errors import InputError, Interrupted
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Synthetic data for multispectral photometric stereo (Mitsuba 3) and the dual-cue network.")
@@ -24,8 +24,20 @@ def fail(msg: str, code: int = 1):
     raise typer.Exit(code)
 
 
+def _os_error_line(e: OSError) -> str:
+    """'PATH: reason' for an OSError (read-only directory, path is a file, disk full, ...)."""
+    what = e.strerror or (str(e).splitlines()[0] if str(e) else type(e).__name__)
+    if isinstance(e, FileNotFoundError):
+        what = "not found"
+    if e.filename is None:
+        return f"{what} ({type(e).__name__})"
+    target = e.filename if e.filename2 is None else f"{e.filename} -> {e.filename2}"
+    return f"{target}: {what}"
+
+
 def clean_errors(fn):
-    """Decorator: bad input -> one line + exit 1 (no traceback)."""
+    """Decorator: bad input or an unusable path -> one line + exit 1 (no traceback);
+    an interrupted render -> its summary line + exit 128 + signal (130 SIGINT, 143 SIGTERM)."""
 
     @functools.wraps(fn)
     def wrapper(*a, **kw):
@@ -33,8 +45,14 @@ def clean_errors(fn):
             return fn(*a, **kw)
         except InputError as e:
             fail(str(e))
-        except FileNotFoundError as e:
-            fail(f"{e.filename}: not found")
+        except Interrupted as e:
+            typer.echo(str(e), err=True)
+            raise typer.Exit(e.exit_code)
+        except OSError as e:
+            if e.filename is None and not isinstance(e, (PermissionError, FileNotFoundError, IsADirectoryError,
+                                                         NotADirectoryError, FileExistsError)):
+                raise
+            fail(_os_error_line(e))
 
     return wrapper
 

@@ -13,6 +13,24 @@ class InputError(ValueError):
         self.problem = problem
         super().__init__(f"{self.source}: {problem}")
 
+    def __reduce__(self):  # crosses process boundaries intact (local pool, Dask)
+        return (type(self), (self.source, self.problem))
+
+
+class Interrupted(Exception):
+    """A render stopped by SIGINT/SIGTERM after cleaning up; the CLI exits 128 + signum."""
+
+    def __init__(self, signum: int, done: int, total: int):
+        self.signum, self.done, self.total = int(signum), int(done), int(total)
+        super().__init__(f"interrupted: {done} of {total} shards done; rerun with --resume")
+
+    def __reduce__(self):
+        return (type(self), (self.signum, self.done, self.total))
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
 
 def closest(name: str, choices) -> str:
     """' (did you mean X?)' suffix for an unknown name, or ''."""

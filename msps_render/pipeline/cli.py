@@ -27,6 +27,7 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
                set_: List[str] = typer.Option([], "--set", help="override, e.g. lights.slant_deg=25"),
                variant: Optional[str] = typer.Option(None, help="Mitsuba variant"),
                threads: Optional[int] = typer.Option(None, help="render threads per worker"),
+               recycle_after: int = typer.Option(0, help="replace a local worker after N shards (0: never)"),
                quiet: bool = typer.Option(False, help="no progress bar")):
     """Render a dataset of HDF5 patch shards."""
     from msps_render.pipeline.config import load_config
@@ -37,7 +38,8 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
         overrides = list(set_) + ([f"dataset.seed={seed}"] if seed is not None else [])
         cfg = load_config(config, overrides)
         m = render_dataset(cfg, out, workers=workers, scheduler=scheduler, resume=resume, force=force,
-                           variant=variant, threads=threads, progress=not quiet)
+                           variant=variant, threads=threads, progress=not quiet,
+                           recycle_after=recycle_after or None)
         typer.echo(f"{out}: {len(m['shards'])} shards, {m['n_patches']} patches, complete={m['complete']}")
 
     go()

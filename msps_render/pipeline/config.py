@@ -12,7 +12,7 @@ import json
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, model_validator
 
 from msps_render.config_io import apply_overrides, read_toml, set_path, validate
 from msps_render.errors import InputError
@@ -56,6 +56,7 @@ class DatasetConfig(_Cfg):
     dataset: DatasetSection = DatasetSection()
     scene: SceneConfig = SceneConfig()
     sweep: SweepConfig | None = None
+    _source: str | None = PrivateAttr(default=None)  # the TOML it was read from (for error lines)
 
     @model_validator(mode="after")
     def _check(self) -> "DatasetConfig":
@@ -111,7 +112,9 @@ def load_config(path_or_name: str | Path, overrides: list[str] | tuple[str, ...]
     """Read a preset name or TOML path, apply `key=value` overrides, validate."""
     p = resolve_preset(path_or_name)
     data = apply_overrides(read_toml(p), overrides, _qualify)
-    return validate_config(data, str(p))
+    cfg = validate_config(data, str(p))
+    cfg._source = str(p)
+    return cfg
 
 
 def validate_config(data: dict, source: str = "<config>") -> DatasetConfig:

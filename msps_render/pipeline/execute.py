@@ -1,15 +1,19 @@
 """Execute tasks: render each shard in a worker, write it atomically, record it in the manifest.
 
 `render_shard` is the whole unit of work and a plain function of its task, so
-the same code runs in a local `spawn` process pool (Mitsuba is initialised
-only inside workers; workers are recycled every N shards to bound JIT/memory
-growth) or on a Dask cluster.  Only the parent touches the manifest.
+the same code runs in this process (`--workers 1`), in `WorkerPool` (our own
+small `spawn` pool: Mitsuba is initialised only inside workers, workers can be
+recycled every N shards, and they die with the driver) or on a Dask cluster.
+Only the parent touches the manifest.
 """
 from __future__ import annotations
 
-import concurrent.futures as cf
 import multiprocessing as mp
+import os
+import signal
+import sys
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable
@@ -33,6 +37,7 @@ def render_shard(task: Task, ws: WorkerSettings) -> dict:
     import msps_render
     from msps_render.patches import patchify
     from msps_render.render import render_frame
+    from msps_render.render.render import release_frame_memory
     from msps_render.scene.sample import sample_scene
     from msps_render.shards import FrameRecord, Patches, ShardContent, write_shard
 
@@ -55,6 +60,7 @@ def render_shard(task: Task, ws: WorkerSettings) -> dict:
         p = patchify(frame, d.patches.size, d.patches.stride, d.patches.min_coverage)
         pats.append(p)
         fidx.append(np.full(len(p), j, np.int32))
+        release_frame_memory()  # flat worker memory (drjit kernel cache), docs/benchmarks.md
         env = spec.environment
         frames.append(FrameRecord(
             scene_json=spec.to_json(indent=None), light_dirs=frame.light_dirs, crosstalk=frame.crosstalk,
@@ -102,19 +108,254 @@ OnDone = Callable[[Task, dict], None]
 
 
 def run_local(tasks: Iterable[Task], ws: WorkerSettings, workers: int, on_done: OnDone,
-              max_tasks_per_child: int | None = None) -> None:
+              recycle_after: int | None = None) -> None:
+    """Render `tasks` in this process (`workers <= 1`) or in a `WorkerPool` of `workers` processes."""
     tasks = list(tasks)
     if workers <= 1:  # in-process: simplest to debug, same results
         for t in tasks:
             on_done(t, render_shard(t, ws))
         return
-    ctx = mp.get_context("spawn")
-    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
-                                initargs=(ws.variant, ws.threads),
-                                max_tasks_per_child=max_tasks_per_child) as pool:
-        futs = {pool.submit(render_shard, t, ws): t for t in tasks}
-        for f in cf.as_completed(futs):
-            on_done(futs[f], f.result())
+    pool = WorkerPool(min(workers, len(tasks)) or 1, ws.variant, ws.threads, recycle_after)
+    try:
+        pool.run(tasks, ws, on_done)
+    except BaseException:  # error, Ctrl-C, SIGTERM: stop every worker now, keep what already finished
+        pool.kill()
+        pool.drain(on_done)
+        raise
+    finally:
+        pool.close()
+
+
+# ------------------------------------------------------------------ the local worker pool
+class WorkerDied(RuntimeError):
+    """A worker process ended without reporting its shard (killed, crashed, out of memory)."""
+
+
+class RemoteTraceback(Exception):
+    """Carries a worker's formatted traceback as the `__cause__` of the re-raised error."""
+
+    def __init__(self, tb: str):
+        super().__init__(tb)
+        self.tb = tb
+
+    def __str__(self) -> str:
+        return f"\n\"\"\"\n{self.tb}\"\"\""
+
+
+def _portable(exc: BaseException) -> tuple[BaseException, str]:
+    """(exception that survives pickling, worker traceback text)."""
+    import pickle
+    import traceback
+
+    tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+    try:
+        pickle.loads(pickle.dumps(exc))
+        return exc, tb
+    except Exception:
+        return RuntimeError(f"{type(exc).__name__}: {exc}"), tb
+
+
+def _die_with_parent(lifeline, parent_pid: int) -> None:
+    """Make this worker exit within a second of the driver's death, however it dies.
+
+    Linux: PR_SET_PDEATHSIG delivers SIGKILL when the parent goes (even on its
+    SIGKILL).  Everywhere: a daemon thread blocks on the read end of a pipe whose
+    only write end the parent holds; the kernel closes it when the parent dies,
+    the read returns EOF, and the thread ends the process.  The getppid check
+    covers a parent that died before either was armed.
+    """
+    import threading
+
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+        except Exception:  # pragma: no cover - no libc / seccomp: the pipe still works
+            pass
+    if os.getppid() != parent_pid:
+        os._exit(3)
+
+    def watch():
+        try:
+            lifeline.recv()
+        except BaseException:
+            pass
+        os._exit(3)
+
+    threading.Thread(target=watch, name="msps-lifeline", daemon=True).start()
+
+
+def _worker_main(conn, lifeline, parent_pid: int, variant: str, threads: int | None) -> None:
+    """Worker loop: receive (task, settings), render, send ('ok', name, info) or ('error', name, exc, tb).
+
+    SIGINT is ignored (Ctrl-C reaches the whole process group; the driver decides
+    and stops workers itself); SIGTERM keeps its default (exit).
+    """
+    _die_with_parent(lifeline, parent_pid)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        _worker_init(variant, threads)
+    except BaseException as e:
+        conn.send(("error", None, *_portable(e)))
+        return
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            os._exit(3)
+        if msg is None:  # asked to retire
+            break
+        task, ws = msg
+        try:
+            info = render_shard(task, ws)
+        except BaseException as e:
+            conn.send(("error", task.name, *_portable(e)))
+            continue
+        conn.send(("ok", task.name, info))
+    conn.close()
+
+
+class _Worker:
+    def __init__(self, ctx, variant: str, threads: int | None):
+        self.conn, child_conn = ctx.Pipe(duplex=True)
+        life_r, self.lifeline = ctx.Pipe(duplex=False)
+        self.proc = ctx.Process(target=_worker_main, name="msps-worker", daemon=True,
+                                args=(child_conn, life_r, os.getpid(), variant, threads))
+        self.proc.start()
+        child_conn.close()
+        life_r.close()
+        self.task: Task | None = None
+        self.done = 0
+
+    def send(self, task: Task, ws: WorkerSettings) -> None:
+        self.task = task
+        self.conn.send((task, ws))
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Graceful: ask to exit after the current task, wait, then kill."""
+        try:
+            self.conn.send(None)
+        except OSError:
+            pass
+        self.proc.join(timeout)
+        self.kill()
+        self.close()
+
+    def kill(self) -> None:
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join(5)
+
+    def close(self) -> None:
+        for c in (self.conn, self.lifeline):
+            try:
+                c.close()
+            except OSError:
+                pass
+
+
+class WorkerPool:
+    """A small process pool for shards: `spawn` workers, optional recycling, no orphans.
+
+    Why not `concurrent.futures.ProcessPoolExecutor`: with `max_tasks_per_child`
+    it deadlocks once workers reach their limit (CPython gh-115634, 3.11+), a
+    worker killed mid-task breaks the whole pool, and its workers outlive a
+    SIGKILLed driver.  Here the parent owns everything: it hands out one task at
+    a time per worker over a pipe, retires a worker after `recycle_after` shards
+    (asks it to exit, joins it, spawns a fresh one), and every worker dies with
+    the parent (`_die_with_parent`).  Only the parent touches the manifest.
+    """
+
+    def __init__(self, n_workers: int, variant: str, threads: int | None = None,
+                 recycle_after: int | None = None):
+        self.ctx = mp.get_context("spawn")
+        self.n = max(1, int(n_workers))
+        self.variant, self.threads = variant, threads
+        self.recycle_after = int(recycle_after) if recycle_after else None
+        self.workers: list[_Worker] = []
+        self.spawned = 0  # workers started over the pool's life (recycling adds some)
+
+    def _spawn(self) -> _Worker:
+        w = _Worker(self.ctx, self.variant, self.threads)
+        self.spawned += 1
+        self.workers.append(w)
+        return w
+
+    def _retire(self, w: _Worker) -> None:
+        self.workers.remove(w)
+        w.stop()
+
+    def run(self, tasks: Iterable[Task], ws: WorkerSettings, on_done: OnDone) -> None:
+        from multiprocessing.connection import wait
+
+        pending = deque(tasks)
+        while len(self.workers) < min(self.n, len(pending)):
+            self._spawn()
+        for w in list(self.workers):
+            if pending:
+                w.send(pending.popleft(), ws)
+        while any(w.task is not None for w in self.workers):
+            busy = [w for w in self.workers if w.task is not None]
+            ready = wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], timeout=0.5)
+            for w in busy:
+                if w.conn not in ready and w.proc.sentinel not in ready:
+                    continue
+                msg = None
+                try:
+                    if w.conn.poll():
+                        msg = w.conn.recv()
+                except (EOFError, OSError):
+                    msg = None
+                if msg is None:
+                    if w.proc.is_alive() and w.proc.sentinel not in ready:
+                        continue
+                    w.proc.join(1)
+                    code = w.proc.exitcode
+                    how = f"signal {signal.Signals(-code).name}" if code is not None and code < 0 else f"exit code {code}"
+                    raise WorkerDied(f"a worker process (pid {w.proc.pid}) died ({how}) while rendering "
+                                     f"{w.task.name if w.task else 'a shard'}; rerun with --resume")
+                kind, name, *rest = msg
+                if kind == "error":
+                    exc, tb = rest
+                    exc.__cause__ = RemoteTraceback(tb)
+                    raise exc
+                task, w.task = w.task, None
+                w.done += 1
+                on_done(task, rest[0])
+                if self.recycle_after and w.done >= self.recycle_after:
+                    self._retire(w)
+                    if pending:
+                        w = self._spawn()
+                if pending:
+                    w.send(pending.popleft(), ws)
+
+    def drain(self, on_done: OnDone) -> None:
+        """After an interrupt: record results already sent by workers (nothing else)."""
+        for w in self.workers:
+            try:
+                while w.task is not None and w.conn.poll(0):
+                    msg = w.conn.recv()
+                    if msg and msg[0] == "ok":
+                        task, w.task = w.task, None
+                        on_done(task, msg[2])
+            except (EOFError, OSError, Exception):
+                continue
+
+    def kill(self) -> None:
+        """SIGKILL every worker now (errors, interrupts); results already sent stay readable."""
+        for w in self.workers:
+            w.kill()
+
+    def close(self) -> None:
+        """Stop every remaining worker (gracefully if still running) and close the pipes."""
+        ws, self.workers = self.workers, []
+        for w in ws:
+            if w.proc.is_alive():
+                w.stop()
+            else:
+                w.close()
 
 
 def run_dask(tasks: Iterable[Task], ws: WorkerSettings, scheduler: str, workers: int, on_done: OnDone) -> None:

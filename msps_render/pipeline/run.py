@@ -1,14 +1,19 @@
 """`render_dataset`: plan, skip what is already done, execute, keep the manifest current."""
 from __future__ import annotations
 
-import shutil
+import contextlib
+import signal
+import threading
 import time
 from pathlib import Path
 
-from msps_render.errors import InputError
+from msps_render.errors import InputError, Interrupted
 from msps_render.pipeline.config import DatasetConfig, config_hash, config_json
 from msps_render.pipeline.execute import WorkerSettings, run_dask, run_local
-from msps_render.pipeline.manifest import SHARD_DIR, new_manifest, read_manifest, write_manifest
+from msps_render.pipeline.manifest import MANIFEST, SHARD_DIR, new_manifest, read_manifest, write_manifest
+from msps_render.pipeline.outdir import (OutLock, check_out_dir, remove_dataset, remove_if_empty,
+                                         remove_temporaries)
+from msps_render.pipeline.validate import validate_inputs
 from msps_render.pipeline.plan import plan
 from msps_render.shards import file_digest
 
@@ -21,32 +26,62 @@ def _versions(variant: str) -> dict:
     return {"msps": msps_render.__version__, "mitsuba": mi.__version__, "variant": variant}
 
 
+class _Terminated(BaseException):
+    """Raised in the main thread by our SIGTERM handler (like KeyboardInterrupt for SIGINT)."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated()
+
+
 def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, scheduler: str | None = None,
                    resume: bool = False, force: bool = False, variant: str | None = None,
-                   threads: int | None = None, progress: bool = True, max_tasks_per_child: int | None = None) -> dict:
-    """Render (or finish) the dataset `cfg` into `out`. Returns the final manifest."""
+                   threads: int | None = None, progress: bool = True, recycle_after: int | None = None,
+                   max_tasks_per_child: int | None = None) -> dict:
+    """Render (or finish) the dataset `cfg` into `out`. Returns the final manifest.
+
+    Order (docs/reliability.md): validate every input, check `out` (a directory
+    we may write, empty or ours), lock it, then write.  SIGINT/SIGTERM stop the
+    workers, keep every finished shard in the manifest, delete temporaries and
+    raise `Interrupted`; any other failure before the first shard leaves nothing.
+    `recycle_after`: replace a local worker after that many shards (None: never).
+    """
     from msps_render.render.variant import resolve_variant
 
-    out = Path(out)
+    recycle_after = recycle_after if recycle_after is not None else max_tasks_per_child  # old name
+    out = Path(out).expanduser().absolute()  # Dask workers resolve relative paths in their own cwd
+    validate_inputs(cfg, getattr(cfg, "_source", None))
+    tasks = plan(cfg)
+    mode = "spectral" if getattr(cfg.scene, "mode", "rgb") == "spectral" else "rgb"
+    variant = variant or resolve_variant(mode)
+    check_out_dir(out, has_manifest=(out / MANIFEST).is_file())
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        with OutLock(out):
+            return _render_locked(cfg, out, tasks, variant, workers, scheduler, resume, force, threads,
+                                  progress, recycle_after)
+    finally:
+        if created:
+            remove_if_empty(out)
+
+
+def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, force, threads, progress,
+                   recycle_after) -> dict:
     h = config_hash(cfg)
-    existing = read_manifest(out) if out.is_dir() else None
-    if existing is not None:
+    existing = read_manifest(out)
+    if existing is not None and existing.get("shards"):  # an empty manifest protects nothing
         if existing.get("config_hash") != h and not force:
             raise InputError(out, "holds a dataset made with a different config "
                                   f"({existing.get('config_hash', '?')[:12]} != {h[:12]}); use --force to replace it")
         if existing.get("config_hash") == h and not (resume or force):
             raise InputError(out, "already holds this dataset; use --resume to finish it or --force to redo it")
-    if force and out.is_dir():
-        shutil.rmtree(out / SHARD_DIR, ignore_errors=True)
-        (out / "dataset.json").unlink(missing_ok=True)
+    if existing is not None and (force or existing.get("config_hash") != h):
+        remove_dataset(out)  # only the toolkit's own files
         existing = None
-    tasks = plan(cfg)
-    mode = "spectral" if getattr(cfg.scene, "mode", "rgb") == "spectral" else "rgb"
-    variant = variant or resolve_variant(mode)
-    (out / SHARD_DIR).mkdir(parents=True, exist_ok=True)
-    for stale in (out / SHARD_DIR).glob(".*.tmp"):  # partial shards from a crash
-        stale.unlink()
-    manifest = existing if (existing is not None and resume) else new_manifest(
+    remove_temporaries(out)  # partial shards from a crash
+    (out / SHARD_DIR).mkdir(exist_ok=True)
+    manifest = existing if existing is not None else new_manifest(
         config_json(cfg), h, cfg.dataset.seed, tasks, _versions(variant))
     done = {}
     for t in tasks:
@@ -68,13 +103,32 @@ def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, schedu
 
     ws = WorkerSettings(out_dir=str(out), variant=variant, threads=threads)
     t0 = time.perf_counter()
+    main_thread = threading.current_thread() is threading.main_thread()
+    old_term = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
+    stopped_by = None
     try:
         if scheduler:
             run_dask(todo, ws, scheduler, workers, on_done)
         else:
-            run_local(todo, ws, workers, on_done, max_tasks_per_child=max_tasks_per_child)
+            run_local(todo, ws, workers, on_done, recycle_after=recycle_after)
+    except KeyboardInterrupt:
+        stopped_by = signal.SIGINT
+    except _Terminated:
+        stopped_by = signal.SIGTERM
+    except BaseException:
+        with _signals_ignored(main_thread):
+            bar.close()
+            _cleanup_failed(out, manifest)
+        raise
     finally:
         bar.close()
+        if main_thread:
+            signal.signal(signal.SIGTERM, old_term)
+    if stopped_by is not None:
+        with _signals_ignored(main_thread):  # a second Ctrl-C must not interrupt the cleanup
+            remove_temporaries(out)
+            write_manifest(out, manifest)  # every shard finished before the signal
+        raise Interrupted(int(stopped_by), len(manifest["shards"]), len(tasks))
     manifest["n_patches"] = sum(e["n_patches"] for e in manifest["shards"].values())
     manifest["n_frames"] = sum(e["n_frames"] for e in manifest["shards"].values())
     manifest["complete"] = len(manifest["shards"]) == len(tasks)
@@ -82,6 +136,29 @@ def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, schedu
                             "scheduler": scheduler or "local", "shards_rendered": len(todo)}
     write_manifest(out, manifest)
     return manifest
+
+
+def _cleanup_failed(out: Path, manifest: dict) -> None:
+    """After an error: no temporaries; with no shard rendered, no manifest and no shards/ either."""
+    remove_temporaries(out)
+    if manifest["shards"]:
+        write_manifest(out, manifest)
+    else:
+        (out / MANIFEST).unlink(missing_ok=True)
+        remove_if_empty(out / SHARD_DIR)
+
+
+@contextlib.contextmanager
+def _signals_ignored(main_thread: bool):
+    if not main_thread:
+        yield
+        return
+    old = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 class _Progress:
@@ -112,3 +189,4 @@ class _Progress:
     def close(self) -> None:
         if self._p:
             self._p.stop()
+            self._p = None

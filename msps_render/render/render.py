@@ -247,3 +247,25 @@ def analytic_sphere_normals(width: int, height: int, extent: float, radius: floa
 
 __all__ = ["render_frame", "build_scene_dict", "analytic_sphere_normals"]
 
+
+
+def release_frame_memory() -> None:
+    """Free what a finished frame left behind; pipeline workers call it after every frame.
+
+    drjit keeps every kernel it ever compiled, and each new scene compiles a few
+    (scene-specific constants), so a worker grew by ~0.16-0.26 MiB per frame
+    without end (benchmarks/bench_memory.py; the bare-Mitsuba `--repro` loop grows
+    the same, so the growth is drjit's cache, not ours).  Flushing the kernel cache
+    keeps RSS flat and costs nothing measurable (docs/benchmarks.md, "Worker memory").
+    `gc.collect()` first so scenes kept alive by reference cycles release their buffers.
+    """
+    import gc
+
+    import drjit as dr
+
+    gc.collect()
+    try:
+        dr.sync_thread()
+        dr.flush_kernel_cache()
+    except Exception:  # scalar variants / no JIT backend: nothing cached
+        pass

@@ -29,6 +29,40 @@ def slant_tilt_from_direction(d) -> tuple[float, float]:
         np.degrees(np.arctan2(d[1], d[0])) % 360.0)
 
 
+def crosstalk_problem(M) -> str | None:
+    """What is wrong with a crosstalk matrix (rows: camera channels, columns: lights), or None.
+
+    It must be finite and non-negative, every light must reach at least one
+    channel, and for three lights it must be invertible (well conditioned):
+    a singular matrix makes the lights inseparable and demultiplexing impossible.
+    """
+    M = np.asarray(M, dtype=np.float64)
+    if M.ndim != 2 or M.shape[0] != 3 or M.shape[1] < 1:
+        return f"must be a 3xK matrix, got shape {M.shape}"
+    if not np.isfinite(M).all():
+        return f"has {int((~np.isfinite(M)).sum())} NaN/inf entries"
+    if (M < 0).any():
+        i, j = (int(x) for x in np.argwhere(M < 0)[0])
+        return f"has negative entries (row {i}, column {j}: {M[i, j]:g})"
+    dead = [k for k in range(M.shape[1]) if M[:, k].sum() <= 0]
+    if dead:
+        return f"light {dead[0]} reaches no camera channel (column {dead[0]} is all zero)"
+    if M.shape[1] == 3:
+        sv = np.linalg.svd(M, compute_uv=False)
+        if sv[-1] <= 1e-6 * sv[0]:
+            return (f"is singular (rank {int((sv > 1e-6 * sv[0]).sum())}, condition number "
+                    f"{'inf' if sv[-1] == 0 else f'{sv[0] / sv[-1]:.3g}'}): the lights cannot be told apart")
+    return None
+
+
+def check_crosstalk(M, source: str = "lights.crosstalk") -> np.ndarray:
+    """`M` as a float array, or InputError naming `source`."""
+    why = crosstalk_problem(M)
+    if why:
+        raise InputError(source, f"crosstalk {why}")
+    return np.asarray(M, dtype=np.float64)
+
+
 def three_lights(
     slant_deg: float = 30.0,
     tilts_deg=(0.0, 120.0, 240.0),
@@ -50,6 +84,7 @@ def three_lights(
     M = np.asarray(crosstalk, dtype=np.float64)
     if M.shape != (3, len(tilts_deg)):
         raise InputError("lights.crosstalk", f"crosstalk must be 3x{len(tilts_deg)}, got {M.shape}")
+    check_crosstalk(M)
     if (jitter_deg > 0 or intensity_jitter > 0) and rng is None:
         raise ValueError("jitter needs an rng")
     lights = []
