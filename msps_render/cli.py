@@ -65,10 +65,12 @@ def render_scene(scene: Path = typer.Argument(..., help="SceneSpec JSON (see `ms
                  threads: Optional[int] = typer.Option(None, help="render threads"),
                  per_light: bool = typer.Option(False, "--per-light", help="also write one image per light")):
     """Render one scene: image/normal/depth EXR + PNG previews + scene.json."""
+    from msps_render.pipeline.outdir import check_writable
     from msps_render.render import render_frame
     from msps_render.scene.spec import SceneSpec
 
     spec = SceneSpec.load(scene)
+    check_writable(out)
     frame = render_frame(spec, variant=variant, threads=threads, per_light=per_light)
     files = frame.save(out)
     typer.echo(f"rendered {scene} with {frame.variant} -> {out} ({len(files)} files)")
@@ -85,6 +87,9 @@ def sample_scene_cmd(out: Path = typer.Option(..., "--out", "-o", help="SceneSpe
 
     from msps_render.scene.sample import SceneConfig, load_scene_config, sample_scene
 
+    from msps_render.pipeline.outdir import check_writable
+
+    check_writable(out.parent)
     cfg = load_scene_config(config) if config else SceneConfig()
     spec = sample_scene(cfg, np.random.default_rng(seed), seed=seed)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -8,6 +8,7 @@ shard, so random access costs one HDF5 read per batch instead of per patch.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,18 @@ from torch.utils.data import Dataset, Sampler
 
 from msps_render.errors import InputError
 from msps_render.pipeline.manifest import SHARD_DIR, read_manifest
+
+
+@contextlib.contextmanager
+def _shard_errors(path: Path):
+    """A corrupted or truncated shard (h5py's bare OSError/KeyError) -> InputError naming the file."""
+    try:
+        yield
+    except (OSError, KeyError) as e:
+        from msps_render.errors import brief
+
+        raise InputError(path, f"unreadable shard ({brief(str(e))}); run `msps verify` on the dataset "
+                               "and re-render bad shards with `msps render ... --resume`") from None
 
 
 def _shard_list(root: Path, condition: str | None) -> list[tuple[Path, int, str]]:
@@ -69,7 +82,7 @@ class PatchDataset(Dataset):
     def _read_meta(path: Path) -> dict:
         import h5py
 
-        with h5py.File(path, "r") as h:
+        with _shard_errors(path), h5py.File(path, "r") as h:
             return {"frame_index": h["patches/frame_index"][()], "light_dirs": h["frames/light_dirs"][()],
                     "crosstalk": h["frames/crosstalk"][()]}
 
@@ -77,7 +90,7 @@ class PatchDataset(Dataset):
     def _read_all(path: Path) -> dict:
         import h5py
 
-        with h5py.File(path, "r") as h:
+        with _shard_errors(path), h5py.File(path, "r") as h:
             return {k: h[f"patches/{k}"][()] for k in ("image", "normal", "mask")}
 
     def _h(self, s: int):
@@ -106,8 +119,9 @@ class PatchDataset(Dataset):
                 # Decode the whole shard once: h5py fancy indexing costs ~0.3 ms per index and
                 # re-reading spans re-decompresses them; ShardBatchSampler visits a shard's batches
                 # close together, so a small LRU of decoded shards serves them all.
-                h = self._h(s)
-                c = {k: h[f"patches/{k}"][()] for k in ("image", "normal", "mask")}
+                with _shard_errors(self.shards[s][0]):
+                    h = self._h(s)
+                    c = {k: h[f"patches/{k}"][()] for k in ("image", "normal", "mask")}
                 self._decoded[s] = c
                 while len(self._decoded) > self.decoded_shards:
                     self._decoded.pop(next(iter(self._decoded)))

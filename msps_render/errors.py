@@ -32,6 +32,17 @@ class Interrupted(Exception):
         return 128 + self.signum
 
 
+def brief(text: str, limit: int = 120) -> str:
+    """First line of `text`, cut at a word boundary to at most `limit` characters (with '...')."""
+    line = (text or "").strip().splitlines()[0] if (text or "").strip() else ""
+    if len(line) <= limit:
+        return line
+    cut = line[:limit - 3]
+    if " " in cut[limit // 2:]:
+        cut = cut[:cut.rindex(" ")]
+    return cut.rstrip(" ,;:") + "..."
+
+
 def closest(name: str, choices) -> str:
     """' (did you mean X?)' suffix for an unknown name, or ''."""
     match = difflib.get_close_matches(name, list(choices), n=1, cutoff=0.5)

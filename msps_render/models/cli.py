@@ -51,7 +51,9 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
 
     def go():
         from msps_render.models.evaluate import evaluate
+        from msps_render.pipeline.outdir import check_writable
 
+        check_writable(out, "report")
         r = evaluate(data, out, checkpoint=checkpoint, method=method, max_patches=max_patches)
         for cond, v in r["conditions"].items():
             p = v["patches"]
@@ -75,7 +77,9 @@ def predict_cmd(image: Path = typer.Argument(..., help="EXR/HDR/PNG/NPY image (l
 
     def go():
         from msps_render.models.predict import predict_main
+        from msps_render.pipeline.outdir import check_writable
 
+        check_writable(out.parent)
         files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk)
         typer.echo("wrote " + ", ".join(map(str, files)))
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from msps_render.errors import InputError
+from msps_render.errors import InputError, brief
 from msps_render.models.losses import angular_error, total_loss
 from msps_render.models.net import DualCueNet, count_parameters
 from msps_render.models.presets import ModelConfig
@@ -55,7 +55,7 @@ def load_checkpoint(path: str | Path, expect_preset: str | None = None, map_loca
     try:
         ck = torch.load(p, map_location=map_location, weights_only=True)
     except Exception as e:
-        raise InputError(p, f"not a loadable checkpoint ({str(e).splitlines()[0][:100]})") from None
+        raise InputError(p, f"not a loadable checkpoint ({brief(str(e), 100)})") from None
     if not isinstance(ck, dict) or ck.get("format") != "msps-dualcue-1":
         raise InputError(p, "not an msps dual-cue checkpoint")
     cfg = ModelConfig.model_validate(ck["config"])
@@ -65,7 +65,7 @@ def load_checkpoint(path: str | Path, expect_preset: str | None = None, map_loca
     try:
         model.load_state_dict(ck["model"])
     except RuntimeError as e:
-        raise InputError(p, f"weights do not fit the '{cfg.preset}' network ({str(e).splitlines()[0][:100]})") from None
+        raise InputError(p, f"weights do not fit the '{cfg.preset}' network ({brief(str(e), 100)})") from None
     model.eval()
     return model, cfg, ck
 

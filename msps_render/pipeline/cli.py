@@ -111,12 +111,14 @@ def preview_cmd(root: Path = typer.Argument(..., help="dataset directory"),
                 n: int = typer.Option(8, help="number of samples")):
     """Contact sheet (images, normal maps, masks) + slant/material/coverage distributions."""
     from msps_render.errors import InputError
+    from msps_render.pipeline.outdir import check_writable
     from msps_render.pipeline.preview import preview_dataset
 
     @_clean
     def go():
         if not (root / "dataset.json").is_file():
             raise InputError(root, "no dataset.json here")
+        check_writable(out.parent)
         typer.echo(f"wrote {preview_dataset(root, out, n)}")
 
     go()

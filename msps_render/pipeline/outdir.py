@@ -82,6 +82,26 @@ def check_out_dir(out: Path, has_manifest: bool) -> None:
         raise InputError(out, f"cannot create --out ({parent}: {why})")
 
 
+def check_writable(path: Path, what: str = "output") -> None:
+    """Before any work: `path` (a directory to write into) is, or can be created as, a writable directory."""
+    path = Path(path)
+    if path.exists():
+        if not path.is_dir():
+            raise InputError(path, f"{what} directory exists and is not a directory")
+        why = _probe_writable(path)
+        if why:
+            raise InputError(path, f"{what} directory is not writable ({why})")
+        return
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(path, f"cannot create the {what} directory: {parent} is not a directory")
+    why = _probe_writable(parent)
+    if why:
+        raise InputError(path, f"cannot create the {what} directory ({parent}: {why})")
+
+
 class OutLock:
     """An exclusive `flock` on the dataset directory itself, held for the whole render.
 
@@ -139,5 +159,5 @@ def remove_if_empty(d: Path) -> None:
         pass
 
 
-__all__ = ["OutLock", "check_out_dir", "foreign_entries", "is_ours", "remove_dataset", "remove_temporaries",
+__all__ = ["OutLock", "check_out_dir", "check_writable", "foreign_entries", "is_ours", "remove_dataset", "remove_temporaries",
            "remove_if_empty"]
