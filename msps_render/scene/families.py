@@ -13,7 +13,7 @@ Families (see docs/shapes.md):
              twist and chamfers, stacked blocks
   concave    dents and folds on blobs, cups / bowls / pots (surfaces of
              revolution with a cavity and undercuts), bent or folded shells
-  thin       a body with handles, tapering arms/antennae and thin fins
+  thin       a body with 2-5 handles, tapering arms/antennae and thin fins
   composite  2-5 overlapping closed parts (blobs, superellipsoids, boxes,
              cylinders, cones, capsules, tori, a detailed part) concatenated
 
@@ -291,7 +291,9 @@ def _smooth_mask(x: np.ndarray, rng: np.random.Generator, coverage: float) -> np
 
 def _relief(x: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
     """Multi-scale displacement (object units, object ~ radius 1 => 1 unit ~ 120 px at 256^2):
-    2-4 layers of bumps, grooves, wrinkles and fBm, with features from ~4 to ~40 px."""
+    2-4 layers of bumps, grooves, wrinkles and fBm, with features from ~5 to ~40 px.  The finest
+    features span >= ~4 edges of a level-6 icosphere (edge ~0.017), so the relief is resolved by
+    the mesh instead of aliasing into facets."""
     layers = ["bumps", "grooves", "wrinkles", "fbm"]
     use = [l for l in layers if rng.random() < 0.6]
     while len(use) < 2:
@@ -305,41 +307,47 @@ def _relief(x: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> n
         if layer == "bumps":  # Gaussian bumps and pits of mixed sizes
             nb = int(rng.integers(10, 60))
             c = x[rng.integers(len(x), size=nb)]
-            sig = np.exp(rng.uniform(np.log(0.025), np.log(0.15), nb))
-            amp = rng.uniform(0.25, 0.7, nb) * sig * rng.choice([-1.0, 1.0], nb, p=[0.35, 0.65])
+            sig = np.exp(rng.uniform(np.log(0.03), np.log(0.15), nb))
+            amp = rng.uniform(0.2, 0.6, nb) * sig * rng.choice([-1.0, 1.0], nb, p=[0.35, 0.65])
             for i in range(nb):
                 d2 = ((x - c[i]) ** 2).sum(1)
-                disp += amp[i] * np.exp(-d2 / (2 * sig[i] ** 2))
-        elif layer == "grooves":  # parallel / concentric warped grooves with a narrow profile
-            period = float(np.exp(rng.uniform(np.log(0.07), np.log(0.3))))
-            depth = period * float(rng.uniform(0.08, 0.2))
+                near = d2 < (4 * sig[i]) ** 2
+                disp[near] += amp[i] * np.exp(-d2[near] / (2 * sig[i] ** 2))
+        elif layer == "grooves":  # parallel / concentric warped grooves with a sharpened profile
+            period = float(np.exp(rng.uniform(np.log(0.1), np.log(0.35))))
+            depth = period * float(rng.uniform(0.05, 0.12))
             if rng.random() < 0.5:
                 axis = rng.normal(size=3)
                 coord = x @ (axis / np.linalg.norm(axis))
             else:  # rings about a random centre
                 coord = np.linalg.norm(x - x[int(rng.integers(len(x)))], axis=1)
             coord = coord + 0.3 * period * _waves(x, rng, 8, 0.5, 1.5)
-            s = np.sin(np.pi * coord / period)
-            w = float(rng.uniform(0.25, 0.6))
-            disp -= depth * np.exp(-(s / w) ** 2) * _smooth_mask(x, rng, float(rng.uniform(0.4, 1.0)))
-        elif layer == "wrinkles":  # ridged anisotropic noise in patches
+            s = 0.5 * (1 + np.cos(TAU * coord / period))  # 1 at a groove's centre line
+            sharp = float(rng.uniform(1.5, 4.0))
+            disp -= depth * s ** sharp * _smooth_mask(x, rng, float(rng.uniform(0.4, 1.0)))
+        elif layer == "wrinkles":  # softly ridged anisotropic noise in patches
             axis = rng.normal(size=3)
             axis /= np.linalg.norm(axis)
-            wl = float(rng.uniform(0.05, 0.14))
+            wl = float(rng.uniform(0.07, 0.16))
             g = _waves(x, rng, 24, wl, 2 * wl, direction=axis, spread=0.35)
-            ridge = (1 - np.minimum(np.abs(g), 1.5) / 1.5) ** 2
-            amp = wl * float(rng.uniform(0.06, 0.14))
+            ridge = 1 - np.sqrt(g ** 2 + 0.08)
+            amp = wl * float(rng.uniform(0.05, 0.1))
             disp += amp * (ridge - ridge.mean()) * _smooth_mask(x, rng, float(rng.uniform(0.3, 0.8)))
-        else:  # fBm: octaves of isotropic noise
+        else:  # fBm: octaves of isotropic noise down to ~6 px
             wl, amp = float(rng.uniform(0.35, 0.6)), float(rng.uniform(0.02, 0.04))
-            for _ in range(4):
+            while wl >= 0.06:
                 disp += amp * _waves(x, rng, 16, wl, 1.5 * wl) * 0.5
                 wl, amp = wl / 2, amp * 0.45
     return np.clip(disp * strength, -0.14, 0.14)
 
 
-def _displace(m: Mesh, disp: np.ndarray) -> Mesh:
+def _displace(m: Mesh, disp: np.ndarray, max_slope: float = 0.8) -> Mesh:
+    """Move vertices along the base normal; the relief is scaled down if its steepest slopes
+    (99.9th percentile over edges) exceed `max_slope`, so it stays resolved by the mesh."""
     v, f = m
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    slope = np.abs(disp[e[:, 0]] - disp[e[:, 1]]) / np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
+    disp = disp * min(1.0, max_slope / max(float(np.quantile(slope, 0.999)), 1e-12))
     return v + disp[:, None] * _vnormals(v, f), f
 
 
@@ -434,14 +442,14 @@ def creased(rng: np.random.Generator) -> Mesh:
 def _concave_dented(rng: np.random.Generator, sub: int = 6) -> Mesh:
     d, f = _sphere(sub)
     r = _blob_radius(rng, sub, lmax=3, amplitude=float(rng.uniform(0.1, 0.25)))
-    for _ in range(int(rng.integers(2, 6))):  # dents: super-Gaussian pits with steep walls
+    for _ in range(int(rng.integers(4, 8))):  # dents: super-Gaussian pits with steep walls
         c = rng.normal(size=3)
         c /= np.linalg.norm(c)
         ang = np.arccos(np.clip(d @ c, -1, 1))
-        w, depth = float(rng.uniform(0.25, 0.6)), float(rng.uniform(0.25, 0.5))
+        w, depth = float(rng.uniform(0.4, 0.8)), float(rng.uniform(0.4, 0.7))
         p = float(rng.uniform(2, 4))
         r = r - depth * np.exp(-(ang / w) ** p)
-    for _ in range(int(rng.integers(0, 3))):  # folds: deep valleys along great circles
+    for _ in range(int(rng.integers(1, 3))):  # folds: deep valleys along great circles
         a = rng.normal(size=3)
         a /= np.linalg.norm(a)
         w, depth = float(rng.uniform(0.08, 0.25)), float(rng.uniform(0.2, 0.4))
@@ -480,7 +488,7 @@ def _concave_vase(rng: np.random.Generator) -> Mesh:
     z = np.linspace(-1.0, 1.0, 128)
     r = rng.uniform(0.35, 0.5) * np.ones_like(z)
     for _ in range(int(rng.integers(1, 4))):
-        r = r + rng.uniform(0.08, 0.2) * np.sin(np.pi * rng.uniform(1.0, 4.0) * z + rng.uniform(0, TAU))
+        r = r + rng.uniform(0.12, 0.25) * np.sin(np.pi * rng.uniform(1.5, 4.0) * z + rng.uniform(0, TAU))
     r = np.maximum(r, 0.06) * np.sqrt(np.clip(1 - z ** 2, 0, None)) ** 0.3
     r[0] = r[-1] = 0.0
     return _revolve(r, z, sections=96)
@@ -510,15 +518,15 @@ def concave(rng: np.random.Generator) -> Mesh:
 
 
 def thin(rng: np.random.Generator) -> Mesh:
-    """A body with 1-4 thin parts: handles (tube loops), tapering arms/antennae, fins."""
+    """A body with 2-5 thin parts: handles (tube loops), tapering arms/antennae, fins."""
     body = _body(rng, 5)
-    S = rng.uniform(0.45, 0.7, 3)
+    S = rng.uniform(0.35, 0.6, 3)
     v = body[0] * S
     body = (v, body[1])
     vn = _vnormals(*body)
     parts = [body]
     kinds = ["handle", "arm", "fin", "antenna"]
-    for _ in range(int(rng.integers(1, 5))):
+    for _ in range(int(rng.integers(2, 6))):
         kind = kinds[int(rng.integers(len(kinds)))]
         i = int(rng.integers(len(v)))
         a, na = v[i], vn[i]
@@ -532,7 +540,7 @@ def thin(rng: np.random.Generator) -> Mesh:
             ctrl = [a - 2.5 * r * na, a + h * na, b + h * nb, b - 2.5 * r * nb]
             parts.append(_tube(_bezier(ctrl, 64), r))
         elif kind in ("arm", "antenna"):
-            L = float(rng.uniform(0.4, 0.9))
+            L = float(rng.uniform(0.5, 1.1))
             dirn = na + 0.5 * rng.normal(size=3)
             dirn /= np.linalg.norm(dirn)
             ctrl = [a - 0.15 * na, a + 0.35 * L * dirn + 0.15 * rng.normal(size=3),
@@ -562,7 +570,7 @@ def _composite_part(kind: str, rng: np.random.Generator) -> Mesh:
     if kind == "superellipsoid":
         return _body(rng, 5, "superellipsoid")
     if kind == "detailed":
-        return detailed(rng, sub=5)
+        return detailed(rng, sub=6)
     if kind == "box":
         return _box(rng.uniform(0.4, 1.0, 3))
     if kind == "cylinder":
@@ -620,7 +628,8 @@ SHAPE_FAMILIES: dict[str, Callable[[np.random.Generator], Mesh]] = {
     "composite": composite,
 }
 # Bump a family's version whenever its output for a given seed changes.
-FAMILY_VERSIONS: dict[str, int] = {name: 1 for name in SHAPE_FAMILIES}
+# Version 2 (all): smoothing-group crease normals, resolved relief (version 1 = commit 2c87f34).
+FAMILY_VERSIONS: dict[str, int] = {name: 2 for name in SHAPE_FAMILIES}
 MIXED = "mixed"  # config keyword: every family, one drawn per shape
 
 
@@ -676,36 +685,76 @@ def procedural_mesh(name: str, params: dict) -> Mesh:
 
 
 # ====================================================================== normals
-def crease_normals(v: np.ndarray, f: np.ndarray, angle_deg: float = CREASE_ANGLE_DEG):
-    """Vertex normals that are smooth except across sharp edges.
-
-    Each face corner gets the area-weighted mean of the normals of the faces around its vertex
-    that lie within `angle_deg` of the corner's own face; corners of one vertex that end up with
-    different normals get their own copies of the vertex.  Returns (vertices, faces, normals).
-    Mitsuba interpolates these vertex normals, so a crease renders (and is labelled) sharp while
-    finely tessellated smooth surfaces keep smooth shading.
-    """
-    V, F = len(v), len(f)
-    fn = _face_normals(v, f)
-    fu = fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
-    cv = f.reshape(-1)  # corner -> vertex
-    cf = np.repeat(np.arange(F), 3)  # corner -> face
+def _corner_normals(fn, fu, f, corners, cos_thr):
+    """For the given corners: area-weighted mean normal of the faces around the corner's vertex
+    that lie within the threshold of the corner's own face."""
+    V = int(f.max()) + 1
+    cv, cf = f.reshape(-1), np.arange(f.size) // 3
     order = np.argsort(cv, kind="stable")
     inc_face = cf[order]  # faces grouped by vertex
     deg = np.bincount(cv, minlength=V)
     start = np.concatenate([[0], np.cumsum(deg)[:-1]])
-    cd = deg[cv]
-    pc = np.repeat(np.arange(3 * F), cd)  # pair -> corner
+    cd = deg[cv[corners]]
+    pc = np.repeat(np.arange(len(corners)), cd)  # pair -> index into corners
     offs = np.arange(len(pc)) - np.repeat(np.cumsum(cd) - cd, cd)
-    pg = inc_face[start[cv][pc] + offs]  # pair -> incident face
-    keep = np.einsum("ij,ij->i", fu[cf[pc]], fu[pg]) >= np.cos(np.radians(angle_deg))
+    pg = inc_face[start[cv[corners]][pc] + offs]
+    keep = np.einsum("ij,ij->i", fu[cf[corners][pc]], fu[pg]) >= cos_thr
     pc, pg = pc[keep], pg[keep]
-    cn = np.stack([np.bincount(pc, weights=fn[pg, k], minlength=3 * F) for k in range(3)], 1)
-    ln = np.linalg.norm(cn, axis=1, keepdims=True)
-    cn = np.where(ln > 0, cn / np.where(ln > 0, ln, 1.0), fu[cf])
-    # identical included-face sets give bit-identical sums => exact grouping
-    key = np.column_stack([cv.astype(np.float64), cn])
-    uniq, inv = np.unique(key, axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
-    nv = v[uniq[:, 0].astype(np.int64)]
-    return nv, inv.reshape(F, 3), uniq[:, 1:].copy()
+    n = np.stack([np.bincount(pc, weights=fn[pg, k], minlength=len(corners)) for k in range(3)], 1)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+def crease_normals(v: np.ndarray, f: np.ndarray, angle_deg: float = CREASE_ANGLE_DEG):
+    """Vertex normals that are smooth except across sharp edges.
+
+    An edge is sharp when the normals of its two faces differ by more than `angle_deg` (or it
+    has no opposite face).  Around each vertex, the face corners connected through non-sharp
+    edges form a smoothing group: one copy of the vertex with the group's area-weighted mean
+    normal, so smooth (even strongly curved) regions keep one normal per vertex.  Where a crease
+    ends inside a fan the group still spans it; a corner whose group normal is more than
+    0.75 `angle_deg` off its own face then takes the mean over only the faces within `angle_deg` of
+    its face (its own vertex copy), so flat facets meeting at a corner stay flat.
+    Mitsuba interpolates these vertex normals, so creases render (and are labelled) sharp.
+    Returns (vertices, faces, normals).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    V, F = len(v), len(f)
+    cos_thr = np.cos(np.radians(angle_deg))
+    fn = _face_normals(v, f)  # length = 2 * area
+    fu = fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+    corner = np.arange(3 * F).reshape(F, 3)  # corner id = 3 * face + k
+    k0, k1 = np.array([0, 1, 2]), np.array([1, 2, 0])
+    a, b = f[:, k0].reshape(-1), f[:, k1].reshape(-1)  # directed edge a->b of each corner k
+    ca, cb = corner[:, k0].reshape(-1), corner[:, k1].reshape(-1)
+    key = a * V + b
+    order = np.argsort(key, kind="stable")
+    pos = np.minimum(np.searchsorted(key[order], b * V + a), len(key) - 1)
+    j = order[pos]  # the opposite directed edge b->a (if any)
+    face = np.arange(3 * F) // 3
+    ok = (key[j] == b * V + a) & (np.einsum("ij,ij->i", fu[face], fu[face[j]]) >= cos_thr)
+    # the opposite edge j runs b->a: its start corner sits at b, its end corner at a
+    src = np.concatenate([ca[ok], cb[ok]])
+    dst = np.concatenate([cb[j[ok]], ca[j[ok]]])
+    g = coo_matrix((np.ones(len(src), np.int8), (src, dst)), shape=(3 * F, 3 * F))
+    n_groups, lab = connected_components(g, directed=False)
+    gn = np.stack([np.bincount(lab, weights=fn[face, k], minlength=n_groups) for k in range(3)], 1)
+    gn /= np.maximum(np.linalg.norm(gn, axis=1, keepdims=True), 1e-300)
+    cn = gn[lab]
+    cv = f.reshape(-1)
+    off = np.einsum("ij,ij->i", cn, fu[face]) < np.cos(np.radians(0.75 * angle_deg))
+    if off.any():
+        cn[off] = _corner_normals(fn, fu, f, np.flatnonzero(off), cos_thr)
+    # new vertices: (group) for ordinary corners, (vertex, own normal) for the others; identical
+    # face subsets give bit-identical normals, so exact grouping is safe
+    tag = np.where(off, -1.0, lab.astype(np.float64))
+    rows = np.column_stack([tag, cv.astype(np.float64), np.where(off[:, None], cn, 0.0)])
+    o = np.lexsort(rows.T[::-1])
+    rs = rows[o]
+    new = np.ones(len(rs), bool)
+    new[1:] = (rs[1:] != rs[:-1]).any(axis=1)
+    idx = np.empty(len(rs), np.int64)
+    idx[o] = np.cumsum(new) - 1
+    first = o[new]
+    return v[cv[first]], idx.reshape(F, 3), cn[first]
