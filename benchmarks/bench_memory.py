@@ -13,7 +13,8 @@ and MiB per 1000 frames (least-squares slope over the post-warm-up samples).
 
 `--cleanup`: what runs after each frame — `none`; `gc` (gc.collect());
 `kernel` / `malloc` (only drjit's kernel or malloc cache flush);
-`flush` (gc.collect() + drjit kernel and malloc cache flush).  The pipeline
+`flush` (gc.collect() + drjit kernel and malloc cache flush); `trim` (gc + kernel flush +
+glibc malloc_trim(0)).  The pipeline
 worker does what `msps_render.render.release_frame_memory` does.
 `--repro`: the same loop with only `mitsuba.load_dict` + `mitsuba.render` of a
 fresh in-memory mesh each frame (no msps code, no caches of ours) — the
@@ -61,6 +62,15 @@ def _repro_frame(mi, dr, rng, variant_jit: bool):
     return img
 
 
+def _malloc_trim() -> None:
+    import ctypes
+
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except OSError:
+        pass
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=2000)
@@ -69,7 +79,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=32)
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--cleanup", choices=("none", "gc", "kernel", "malloc", "flush", "worker"), default="worker")
+    ap.add_argument("--cleanup", choices=("none", "gc", "kernel", "malloc", "flush", "worker", "trim"), default="worker")
     ap.add_argument("--repro", action="store_true", help="bare Mitsuba loop (no msps code)")
     args = ap.parse_args()
 
@@ -113,9 +123,14 @@ def main() -> None:
             dr.flush_malloc_cache()
         elif args.cleanup == "worker" and not args.repro:
             release_frame_memory()
+        elif args.cleanup == "trim":
+            gc.collect()
+            dr.flush_kernel_cache()
+            _malloc_trim()
         if i % args.every == 0:
             samples.append((i, rss_mib()))
-            print(f"frame {i:6d}  rss {samples[-1][1]:8.1f} MiB  {time.perf_counter() - t0:7.1f} s", flush=True)
+            print(f"frame {i:6d}  rss {samples[-1][1]:8.1f} MiB  {time.perf_counter() - t0:7.1f} s  "
+                  f"python objects {len(gc.get_objects())}", flush=True)
     post = [(f, r) for f, r in samples if f >= args.warmup]
     if len(post) >= 2:
         f, r = np.array(post).T

@@ -13,7 +13,7 @@ from typing import Optional
 
 import typer
 
-from msps_render.errors import InputError, Interrupted
+from msps_render.errors import InputError, Interrupted, WorkerDied
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Synthetic data for multispectral photometric stereo (Mitsuba 3) and the dual-cue network.")
@@ -43,7 +43,7 @@ def clean_errors(fn):
     def wrapper(*a, **kw):
         try:
             return fn(*a, **kw)
-        except InputError as e:
+        except (InputError, WorkerDied) as e:
             fail(str(e))
         except Interrupted as e:
             typer.echo(str(e), err=True)

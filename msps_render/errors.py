@@ -17,6 +17,10 @@ class InputError(ValueError):
         return (type(self), (self.source, self.problem))
 
 
+class WorkerDied(RuntimeError):
+    """A worker process ended without reporting its shard (killed, crashed, out of memory)."""
+
+
 class Interrupted(Exception):
     """A render stopped by SIGINT/SIGTERM after cleaning up; the CLI exits 128 + signum."""
 

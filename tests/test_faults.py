@@ -496,7 +496,7 @@ def test_verify_flags_unusable_crosstalk(M, tmp_path, reference):
 @pytest.mark.slow
 def test_chaos_kills_and_interrupts_then_resume_equals_uninterrupted(tmp_path):
     """SIGKILL / SIGINT at >= 5 random moments of a 2-worker run, then --resume: same arrays as one clean run."""
-    n = 24
+    n = 60
     cfg_path = tiny(tmp_path, n)
     ref = tmp_path / "ref"
     render_dataset(load_config(cfg_path), ref, workers=1, progress=False, variant=_variant())
@@ -524,3 +524,19 @@ def test_chaos_kills_and_interrupts_then_resume_equals_uninterrupted(tmp_path):
     assert read_manifest(out)["complete"]
     assert digests(out) == digests(ref)
     assert not list((out / "shards").glob(".*.tmp"))
+
+
+def test_worker_killed_mid_run_is_one_line_and_keeps_finished_shards(tmp_path):
+    """A worker dying under the driver (OOM killer, kill -9): exit 1 naming the shard, no hang, no temporaries."""
+    cfg = tiny(tmp_path, 200)
+    out = tmp_path / "ds"
+    proc = _start_render(cfg, out, 2)
+    _wait_for_shards(out, 1, proc)
+    workers = [k for k in _children(proc.pid) if "resource_tracker" not in Path(f"/proc/{k}/cmdline").read_text()]
+    os.kill(workers[0], signal.SIGKILL)
+    err = proc.communicate(timeout=60)[1]
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert proc.returncode == 1 and len(lines) == 1, err
+    assert f"pid {workers[0]}" in lines[0] and "SIGKILL" in lines[0] and "--resume" in lines[0]
+    m = read_manifest(out)
+    assert sorted(p.name for p in (out / "shards").iterdir()) == sorted(m["shards"]) and m["shards"]

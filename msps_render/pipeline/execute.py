@@ -20,6 +20,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from msps_render.errors import WorkerDied
 from msps_render.pipeline.config import DatasetConfig
 from msps_render.pipeline.manifest import SHARD_DIR
 from msps_render.pipeline.plan import Task, frame_rngs, frame_seed
@@ -127,10 +128,6 @@ def run_local(tasks: Iterable[Task], ws: WorkerSettings, workers: int, on_done: 
 
 
 # ------------------------------------------------------------------ the local worker pool
-class WorkerDied(RuntimeError):
-    """A worker process ended without reporting its shard (killed, crashed, out of memory)."""
-
-
 class RemoteTraceback(Exception):
     """Carries a worker's formatted traceback as the `__cause__` of the re-raised error."""
 
