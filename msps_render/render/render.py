@@ -252,12 +252,14 @@ __all__ = ["render_frame", "build_scene_dict", "analytic_sphere_normals"]
 def release_frame_memory() -> None:
     """Free what a finished frame left behind; pipeline workers call it after every frame.
 
-    drjit keeps every kernel it ever compiled, and each new scene compiles a few
-    (scene-specific constants), so a worker grew by ~0.16-0.26 MiB per frame
-    without end (benchmarks/bench_memory.py; the bare-Mitsuba `--repro` loop grows
-    the same, so the growth is drjit's cache, not ours).  Flushing the kernel cache
-    keeps RSS flat and costs nothing measurable (docs/benchmarks.md, "Worker memory").
-    `gc.collect()` first so scenes kept alive by reference cycles release their buffers.
+    Two sources of unbounded worker growth, both outside our code
+    (benchmarks/bench_memory.py, docs/benchmarks.md "Worker memory"):
+    drjit keeps every kernel it ever compiled and each new scene compiles a few
+    (the bare-Mitsuba `--repro` loop grows ~0.16 MiB per frame too), and glibc
+    keeps freed heap in its arenas (a slow creep once the kernel cache is flushed,
+    worst under CPU contention).  Flushing the kernel cache and `malloc_trim(0)`
+    keep RSS flat and cost nothing measurable.  `gc.collect()` first so scenes
+    held by reference cycles release their buffers.
     """
     import gc
 
@@ -269,3 +271,23 @@ def release_frame_memory() -> None:
         dr.flush_kernel_cache()
     except Exception:  # scalar variants / no JIT backend: nothing cached
         pass
+    _malloc_trim()
+
+
+def _malloc_trim() -> None:
+    """Return freed heap to the OS (glibc only; a no-op elsewhere)."""
+    global _LIBC
+    if _LIBC is None:
+        import ctypes
+        import ctypes.util
+
+        try:
+            _LIBC = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+            _LIBC.malloc_trim  # noqa: B018 - raises AttributeError off glibc
+        except (OSError, AttributeError):
+            _LIBC = False
+    if _LIBC:
+        _LIBC.malloc_trim(0)
+
+
+_LIBC = None
