@@ -146,6 +146,9 @@ def _case_files(case: str, tmp: Path) -> tuple[str, str, str]:
         _write_exr(tmp / "nanenv.exr", img)
         return (f'[scene.environment]\nenabled = true\nsource = "{tmp}/nanenv.exr"\nratio = 0.2\n', "NaN",
                 "nanenv.exr")
+    if case == "missing catalogue":
+        return (f'[scene.materials]\nmerl_fraction = 0.5\ncatalogue = "{tmp}/nope-catalogue.toml"\n',
+                "cannot read material catalogue", "nope-catalogue.toml")
     if case == "bad MERL table":
         (tmp / "merl").mkdir()
         (tmp / "merl" / "bad.binary").write_bytes(np.array([90, 90, 180], "<i4").tobytes() + b"\0" * 1000)
@@ -163,7 +166,8 @@ def _case_files(case: str, tmp: Path) -> tuple[str, str, str]:
     return f"[scene.lights]\ncrosstalk = {M}\n", want, "lights.crosstalk"
 
 
-INPUT_CASES = ["missing mesh", "NaN vertex", "empty mesh", "garbage env map", "NaN env map", "bad MERL table",
+INPUT_CASES = ["missing mesh", "NaN vertex", "empty mesh", "garbage env map", "NaN env map", "missing catalogue",
+               "bad MERL table",
                "NaN crosstalk", "negative crosstalk", "zero crosstalk", "dead light", "singular crosstalk"]
 
 
@@ -187,6 +191,34 @@ def test_fixed_config_after_a_failed_run_needs_no_force(tmp_path, reference):
     r = cli("render", tiny(tmp_path, 4), "--out", out, "--quiet")
     assert r.returncode == 0, r.stderr
     assert digests(out) == digests(reference[1])
+
+
+@pytest.mark.parametrize("suffix", [".exr", ".hdr"])
+def test_environment_map_files_render(suffix, tmp_path):
+    """Env-map files (not only the procedural sky) render: in a scene and through the pipeline."""
+    import mitsuba as mi
+
+    from msps_render.render import render_frame
+    from msps_render.scene.sample import SceneConfig, sample_scene
+
+    img = np.full((16, 32, 3), 0.5, np.float32)
+    img[:8] *= 4.0  # brighter sky than ground
+    path = tmp_path / f"env{suffix}"
+    if suffix == ".exr":
+        _write_exr(path, img)
+    else:
+        mi.Bitmap(img).write(str(path))
+    extra = (f'[scene.environment]\nenabled = true\nsource = "{path}"\nratio = 0.5\n'
+             "[dataset.storage]\nstore_frames = true\n")
+    cfg = load_config(tiny(tmp_path, 1, extra))
+    spec = sample_scene(cfg.scene, np.random.default_rng(0))
+    frame = render_frame(spec, variant=_variant())
+    assert frame.env_image is not None and np.isfinite(frame.env_image).all()
+    assert frame.env_image[frame.mask].mean() > 0
+    m = render_dataset(cfg, tmp_path / "ds", progress=False, variant=_variant())
+    assert m["complete"]
+    with h5py.File(tmp_path / "ds" / "shards" / "shard-00000.h5", "r") as h:
+        assert h["frames/env_ratio"][0] == pytest.approx(0.5)
 
 
 # ----------------------------------------------------------------------------- --out
