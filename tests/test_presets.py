@@ -31,3 +31,60 @@ def test_paper_presets_match_the_paper():
     assert tr.scene.shape.n_shapes == 9 and va.scene.shape.n_shapes == 1
     assert tr.scene.shape.pool_seed != va.scene.shape.pool_seed  # validation shape unseen in training
     assert load_config("paper-test").dataset.storage.store_frames
+
+
+TEST_MESH_DIR = "shared/data/meshes"
+UNSEEN = ("unseen-test", "unseen-test-grey", "unseen-robust-env", "unseen-robust-slant")
+
+
+@pytest.mark.parametrize("name", [p for p in PRESETS if p not in UNSEEN])
+def test_no_training_or_validation_preset_sees_test_objects(name):
+    """The test meshes and the held-out measured materials (brdf/split.toml) stay out of every
+    corpus that is not an unseen-object test set; the test sets draw only held-out materials."""
+    cfg = load_config(name)
+    assert not any(TEST_MESH_DIR in m for m in cfg.scene.shape.meshes)
+    assert cfg.scene.materials.holdout == "train"
+    env = cfg.scene.environment
+    assert not (env.enabled and "shared/data/envmaps" in env.source)  # the real HDR map is test-only
+
+
+@pytest.mark.parametrize("name", UNSEEN)
+def test_unseen_presets_use_test_meshes_and_held_out_materials(name):
+    cfg = load_config(name)
+    assert cfg.scene.shape.source == "mesh" and cfg.scene.shape.mesh_order == "cycle"
+    assert len(cfg.scene.shape.meshes) == 7 and all(TEST_MESH_DIR in m for m in cfg.scene.shape.meshes)
+    assert cfg.scene.camera.width == cfg.scene.camera.height == 256
+    assert cfg.dataset.storage.store_frames
+    n_frames = cfg.dataset.n_shards * cfg.dataset.frames_per_shard
+    assert n_frames % 7 == 0  # every mesh gets the same number of frames
+    if name == "unseen-test-grey":
+        assert cfg.scene.materials.families == ["grey"] and cfg.scene.materials.merl_fraction == 0
+        assert cfg.scene.materials.min_count == cfg.scene.materials.max_count == 1
+    else:
+        assert cfg.scene.materials.holdout == "test" and cfg.scene.materials.merl_fraction == 1.0
+
+
+def test_training_presets_are_measured_detailed_and_at_test_scale():
+    tr, va, rb = load_config("train"), load_config("val"), load_config("train-robust")
+    for c in (tr, va, rb):
+        assert c.scene.shape.source == "procedural" and c.scene.materials.merl_fraction >= 0.5
+        assert c.scene.camera.width == 256 and c.dataset.patches.size == 40
+    assert len({tr.dataset.seed, va.dataset.seed, rb.dataset.seed}) == 3
+    assert rb.scene.environment.enabled and rb.scene.sensor is not None and rb.scene.lights.slant_range_deg
+
+
+def test_mesh_cycle_gives_every_mesh_the_same_frames(tmp_path):
+    """mesh_order = "cycle": frame k of a condition gets mesh k mod N, whatever the rng draws."""
+    from msps_render.scene.sample import SceneConfig, sample_scene
+
+    meshes = []
+    for i in range(3):
+        p = tmp_path / f"m{i}.obj"
+        p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+        meshes.append(str(p))
+    cfg = SceneConfig.model_validate({"shape": {"source": "mesh", "meshes": meshes, "mesh_order": "cycle"}})
+    names = [sample_scene(cfg, np.random.default_rng(k), frame_index=k).shape.name for k in range(9)]
+    assert names == ["m0", "m1", "m2"] * 3
+    rnd = SceneConfig.model_validate({"shape": {"source": "mesh", "meshes": meshes}})
+    drawn = [sample_scene(rnd, np.random.default_rng(k), frame_index=k).shape.name for k in range(30)]
+    assert set(drawn) == {"m0", "m1", "m2"} and drawn[:9] != names

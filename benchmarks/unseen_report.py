@@ -1,0 +1,124 @@
+"""Per-object table and side-by-side normal maps on whole-frame test sets (docs/reproducing.md).
+
+For each test dataset (stored with whole frames) and each method — checkpoints
+given as NAME=PATH, plus the calibrated Lambertian baseline — predicts every
+frame, and reports per object the mean over its frames of the per-frame MAE
+(object pixels), plus the pixel-pooled MAE over all frames and the ratio of
+each method to the baseline. Writes `report.json`, `report.md` and one PNG per
+dataset with the first frame of every object: image, ground truth, each method.
+
+    python benchmarks/unseen_report.py --data data/unseen-test --data data/unseen-test-grey \
+        --model dual=runs/dual/best.pt --model scn=runs/scn/best.pt --model pcn=runs/pcn/best.pt \
+        --out runs/report
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+
+def _predictors(models: list[str]):
+    from msps_render.models.baseline import lambertian_ps
+    from msps_render.models.predict import predict_image
+    from msps_render.models.train import load_checkpoint
+
+    out = {}
+    for spec in models:
+        name, path = spec.split("=", 1)
+        model = load_checkpoint(path)[0]
+        out[name] = (lambda m: (lambda fr: predict_image(m, fr.image, fr.mask)))(model)
+    out["lambertian"] = lambda fr: lambertian_ps(fr.image, fr.light_dirs, fr.crosstalk, fr.mask)
+    return out
+
+
+def report(data: Path, preds: dict) -> tuple[dict, list]:
+    from msps_render.data import iter_frames
+    from msps_render.models.baseline import angular_error_deg
+
+    per_obj = {k: defaultdict(list) for k in preds}
+    pooled = {k: [] for k in preds}
+    shown: dict[str, dict] = {}
+    for fr in iter_frames(data):
+        m = fr.mask.astype(bool)
+        for name, f in preds.items():
+            n = f(fr)
+            e = angular_error_deg(n[m], fr.normal[m])
+            per_obj[name][fr.object].append(float(e.mean()))
+            pooled[name].append(e)
+            if fr.object not in shown or name not in shown[fr.object]["pred"]:
+                shown.setdefault(fr.object, {"image": fr.image, "normal": fr.normal, "mask": m, "pred": {}})
+                if name not in shown[fr.object]["pred"]:
+                    shown[fr.object]["pred"][name] = (n, float(e.mean()))
+    res = {"data": str(data), "methods": {}}
+    base = float(np.concatenate(pooled["lambertian"]).mean())
+    for name in preds:
+        mae = float(np.concatenate(pooled[name]).mean())
+        res["methods"][name] = {"mae_deg": mae, "ratio_to_lambertian": mae / base,
+                                "median_deg": float(np.median(np.concatenate(pooled[name]))),
+                                "per_object": {o: float(np.mean(v)) for o, v in sorted(per_obj[name].items())},
+                                "n_frames": sum(len(v) for v in per_obj[name].values())}
+    return res, sorted(shown.items())
+
+
+def figure(shown: list, out: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = list(shown[0][1]["pred"])
+    cols = 2 + len(methods)
+    fig, axes = plt.subplots(len(shown), cols, figsize=(1.9 * cols, 1.9 * len(shown)), squeeze=False)
+    for r, (obj, s) in enumerate(shown):
+        img = s["image"] / max(float(np.percentile(s["image"][s["mask"]], 99)), 1e-6)
+        tiles = [(np.clip(img, 0, 1) ** (1 / 2.2), f"{obj}"), ((s["normal"] + 1) / 2 * s["mask"][..., None], "truth")]
+        tiles += [((n + 1) / 2 * s["mask"][..., None], f"{k} {e:.1f}°") for k, (n, e) in s["pred"].items()]
+        for c, (t, lab) in enumerate(tiles):
+            ax = axes[r, c]
+            ax.imshow(np.clip(t, 0, 1))
+            ax.set_title(lab, fontsize=8)
+            ax.axis("off")
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out, dpi=80)
+    plt.close(fig)
+
+
+def markdown(res: dict) -> str:
+    methods = list(res["methods"])
+    objs = list(res["methods"]["lambertian"]["per_object"])
+    lines = [f"`{res['data']}` — MAE (°), per object = mean over its frames; all = pixel-pooled", "",
+             "| object | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
+    for o in objs:
+        lines.append(f"| {o} | " + " | ".join(f"{res['methods'][k]['per_object'][o]:.2f}" for k in methods) + " |")
+    lines.append("| **all** | " + " | ".join(f"**{res['methods'][k]['mae_deg']:.2f}**" for k in methods) + " |")
+    lines.append("| ratio to Lambertian | " + " | ".join(f"{res['methods'][k]['ratio_to_lambertian']:.2f}"
+                                                         for k in methods) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", action="append", required=True, type=Path)
+    ap.add_argument("--model", action="append", default=[], help="NAME=checkpoint.pt")
+    ap.add_argument("--out", required=True, type=Path)
+    a = ap.parse_args()
+    a.out.mkdir(parents=True, exist_ok=True)
+    preds = _predictors(a.model)
+    all_res, md = [], []
+    for d in a.data:
+        res, shown = report(d, preds)
+        all_res.append(res)
+        md.append(markdown(res))
+        figure(shown, a.out / f"{d.name}.png", f"{d.name}: normal maps (MAE per frame)")
+        print(md[-1])
+    (a.out / "report.json").write_text(json.dumps(all_res, indent=1))
+    (a.out / "report.md").write_text("\n".join(md))
+
+
+if __name__ == "__main__":
+    main()
