@@ -371,11 +371,27 @@ def run_dask(tasks: Iterable[Task], ws: WorkerSettings, scheduler: str, workers:
         client = Client(cluster)
     else:
         client = Client(scheduler)
+    futs: dict = {}
+    recorded: set = set()
     try:
         futs = {client.submit(render_shard, t, ws, key=f"msps-{t.name}-{t.config_json.__hash__()}", pure=False): t
                 for t in tasks}
         for f in as_completed(list(futs)):
-            on_done(futs[f], f.result())
+            info = f.result()
+            recorded.add(f.key)
+            on_done(futs[f], info)
+    except BaseException:  # error or interrupt: keep shards that finished, quietly cancel the rest
+        import logging
+
+        for name in ("distributed", "distributed.worker", "distributed.worker.state_machine"):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
+        for f, t in futs.items():
+            if f.key not in recorded and f.status == "finished":
+                try:
+                    on_done(t, f.result(timeout=1))
+                except Exception:
+                    pass
+        raise
     finally:
         client.close()
         if cluster is not None:
