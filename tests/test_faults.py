@@ -344,6 +344,39 @@ def test_dask_with_relative_out(tmp_path, reference):
     assert digests(tmp_path / "rel" / "ds") == digests(reference[1])
 
 
+def test_dask_scheduler_elsewhere_with_relative_out(tmp_path, reference):
+    """A tcp:// cluster whose worker runs in another directory: a relative --out must still mean the driver's."""
+    pytest.importorskip("dask.distributed")
+    bindir = Path(sys.executable).parent
+    if not (bindir / "dask").exists():
+        pytest.skip("dask CLI not installed")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    sf = tmp_path / "scheduler.json"
+    env = dict(os.environ, MSPS_THREADS="1")
+    common = dict(cwd=elsewhere, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    sched = subprocess.Popen([str(bindir / "dask"), "scheduler", "--scheduler-file", str(sf), "--port", "0",
+                              "--no-dashboard", "--host", "127.0.0.1"], **common)
+    worker = None
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline and not sf.is_file():
+            time.sleep(0.2)
+        time.sleep(0.5)
+        address = json.loads(sf.read_text())["address"]
+        worker = subprocess.Popen([str(bindir / "dask"), "worker", address, "--nworkers", "1", "--nthreads", "1",
+                                   "--no-nanny", "--no-dashboard"], **common)
+        r = cli("render", tiny(tmp_path, 4), "--out", "rel/ds", "--scheduler", address, "--quiet", cwd=tmp_path)
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert digests(tmp_path / "rel" / "ds") == digests(reference[1])
+        assert not (elsewhere / "rel").exists()
+    finally:
+        for p in (worker, sched):
+            if p is not None:
+                p.kill()
+                p.wait(10)
+
+
 # ----------------------------------------------------------------------------- worker pool
 def test_pool_recycles_workers_past_the_period(tmp_path):
     """6 shards, 2 workers, a new worker every 2 shards: no gh-115634 deadlock, same arrays."""
