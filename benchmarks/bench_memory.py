@@ -1,8 +1,8 @@
 """Worker memory over many frames (issue 10): does RSS stay flat?
 
 Usage:
-  nice -n 10 .venv/bin/python benchmarks/bench_memory.py --frames 2000 --every 100 [--cleanup none|gc|flush]
-  nice -n 10 .venv/bin/python benchmarks/bench_memory.py --frames 2000 --repro     # bare Mitsuba, no msps code
+  MSPS_THREADS=1 nice -n 10 .venv/bin/python benchmarks/bench_memory.py --frames 2000 --every 100 --warmup 200
+  MSPS_THREADS=1 nice -n 10 .venv/bin/python benchmarks/bench_memory.py --frames 1000 --repro --cleanup none
 
 Renders `--frames` tiny frames (32x32, 4 spp, blobby shape, 2-3 materials,
 three coloured lights: the default `SceneConfig` at a small size) one after
@@ -12,10 +12,10 @@ then a summary: RSS after warm-up (frame `--warmup`), at the end, growth in %
 and MiB per 1000 frames (least-squares slope over the post-warm-up samples).
 
 `--cleanup`: what runs after each frame — `none`; `gc` (gc.collect());
-`kernel` / `malloc` (only drjit's kernel or malloc cache flush);
-`flush` (gc.collect() + drjit kernel and malloc cache flush); `trim` (gc + kernel flush +
-glibc malloc_trim(0)).  The pipeline
-worker does what `msps_render.render.release_frame_memory` does.
+`kernel` / `malloc` (only drjit's kernel or malloc cache flush); `flush`
+(gc.collect() + drjit kernel and malloc cache flush); `trim` (gc + kernel
+flush + glibc malloc_trim(0)); `worker` (default: what pipeline workers do,
+`msps_render.render.render.release_frame_memory()`).  Results: docs/benchmarks.md.
 `--repro`: the same loop with only `mitsuba.load_dict` + `mitsuba.render` of a
 fresh in-memory mesh each frame (no msps code, no caches of ours) — the
 minimal repro used to tell whether growth is inside Mitsuba/drjit.
@@ -79,7 +79,8 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=32)
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--cleanup", choices=("none", "gc", "kernel", "malloc", "flush", "worker", "trim"), default="worker")
+    ap.add_argument("--cleanup", default="worker",
+                    choices=("none", "gc", "kernel", "malloc", "flush", "worker", "trim"))
     ap.add_argument("--repro", action="store_true", help="bare Mitsuba loop (no msps code)")
     args = ap.parse_args()
 

@@ -310,7 +310,8 @@ class WorkerPool:
                         continue
                     w.proc.join(1)
                     code = w.proc.exitcode
-                    how = f"signal {signal.Signals(-code).name}" if code is not None and code < 0 else f"exit code {code}"
+                    how = (f"signal {signal.Signals(-code).name}" if code is not None and code < 0
+                           else f"exit code {code}")
                     raise WorkerDied(f"a worker process (pid {w.proc.pid}) died ({how}) while rendering "
                                      f"{w.task.name if w.task else 'a shard'}; rerun with --resume")
                 kind, name, *rest = msg

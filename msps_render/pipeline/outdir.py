@@ -159,5 +159,5 @@ def remove_if_empty(d: Path) -> None:
         pass
 
 
-__all__ = ["OutLock", "check_out_dir", "check_writable", "foreign_entries", "is_ours", "remove_dataset", "remove_temporaries",
-           "remove_if_empty"]
+__all__ = ["OutLock", "check_out_dir", "check_writable", "foreign_entries", "is_ours", "remove_dataset",
+           "remove_temporaries", "remove_if_empty"]
