@@ -141,6 +141,18 @@ def remove_temporaries(out: Path) -> None:
         stale.unlink(missing_ok=True)
 
 
+def remove_unrecorded(out: Path, manifest: dict) -> None:
+    """Complete shard files the manifest does not record (a worker killed between its atomic rename
+    and its report): deterministic, re-rendered by --resume, so removed to keep disk == manifest.
+    Call only once every local worker is dead."""
+    shards = out / SHARD_DIR
+    if not shards.is_dir():
+        return
+    for p in shards.glob("shard-*.h5"):
+        if p.name not in manifest.get("shards", {}):
+            p.unlink(missing_ok=True)
+
+
 def remove_dataset(out: Path) -> None:
     """`--force`: delete the toolkit's files only (shards, manifest, temporaries), nothing else."""
     shards = out / SHARD_DIR

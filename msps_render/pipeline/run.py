@@ -12,7 +12,7 @@ from msps_render.pipeline.config import DatasetConfig, config_hash, config_json
 from msps_render.pipeline.execute import WorkerSettings, run_dask, run_local
 from msps_render.pipeline.manifest import MANIFEST, SHARD_DIR, new_manifest, read_manifest, write_manifest
 from msps_render.pipeline.outdir import (OutLock, check_out_dir, remove_dataset, remove_if_empty,
-                                         remove_temporaries)
+                                         remove_temporaries, remove_unrecorded)
 from msps_render.pipeline.validate import validate_inputs
 from msps_render.pipeline.plan import plan
 from msps_render.shards import file_digest
@@ -127,6 +127,8 @@ def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, f
     if stopped_by is not None:
         with _signals_ignored(main_thread):  # a second Ctrl-C must not interrupt the cleanup
             remove_temporaries(out)
+            if not scheduler:  # local workers are dead by now; Dask workers may still be writing
+                remove_unrecorded(out, manifest)
             write_manifest(out, manifest)  # every shard finished before the signal
         raise Interrupted(int(stopped_by), len(manifest["shards"]), len(tasks))
     manifest["n_patches"] = sum(e["n_patches"] for e in manifest["shards"].values())
@@ -141,6 +143,7 @@ def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, f
 def _cleanup_failed(out: Path, manifest: dict) -> None:
     """After an error: no temporaries; with no shard rendered, no manifest and no shards/ either."""
     remove_temporaries(out)
+    remove_unrecorded(out, manifest)
     if manifest["shards"]:
         write_manifest(out, manifest)
     else:
