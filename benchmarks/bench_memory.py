@@ -15,7 +15,7 @@ and MiB per 1000 frames (least-squares slope over the post-warm-up samples).
 `kernel` / `malloc` (only drjit's kernel or malloc cache flush); `flush`
 (gc.collect() + drjit kernel and malloc cache flush); `trim` (gc + kernel
 flush + glibc malloc_trim(0)); `worker` (default: what pipeline workers do,
-`msps_render.render.render.release_frame_memory()`).  Results: docs/benchmarks.md.
+`msps_render.render.memory.release_frame_memory()`).  Results: docs/benchmarks.md.
 `--repro`: the same loop with only `mitsuba.load_dict` + `mitsuba.render` of a
 fresh in-memory mesh each frame (no msps code, no caches of ours) — the
 minimal repro used to tell whether growth is inside Mitsuba/drjit.
@@ -94,7 +94,7 @@ def main() -> None:
     if not args.repro:
         from msps_render.patches import patchify
         from msps_render.render import render_frame
-        from msps_render.render.render import release_frame_memory
+        from msps_render.render.memory import release_frame_memory
         from msps_render.scene.sample import SceneConfig, sample_scene
         from msps_render.scene.spec import CameraSpec, IntegratorSpec
 

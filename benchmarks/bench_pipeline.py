@@ -31,7 +31,7 @@ from msps_render.pipeline.run import render_dataset
 def bare_render_seconds(root: Path, variant: str, threads: int) -> tuple[float, int]:
     import mitsuba as mi
 
-    from msps_render.render.render import build_scene_dict
+    from msps_render.render.scene_dict import build_scene_dict
     from msps_render.render.variant import activate
     from msps_render.scene.spec import SceneSpec
 
@@ -57,14 +57,10 @@ def bare_render_seconds(root: Path, variant: str, threads: int) -> tuple[float, 
 
 
 def storage_table(root: Path) -> list[tuple[str, float]]:
-    from msps_render.shards import ShardContent, write_shard
-    from msps_render.patches import Patches
+    from msps_render.dataset import SHARD_DIR, ShardContent, read_patch_rows, write_shard
 
-    p = sorted((root / "shards").glob("shard-*.h5"))[0]
-    with h5py.File(p, "r") as h:
-        pat = Patches(h["patches/image"][()].astype(np.float32), h["patches/normal"][()].astype(np.float32),
-                      h["patches/mask"][()], h["patches/yx"][()])
-        fi = h["patches/frame_index"][()]
+    p = sorted((root / SHARD_DIR).glob("shard-*.h5"))[0]
+    pat, fi = read_patch_rows(p)
     rows = []
     tmp = root.parent / "storage-test"
     tmp.mkdir(exist_ok=True)

@@ -68,7 +68,7 @@ def main() -> None:
         import mitsuba as mi
 
         from msps_render.render.variant import activate
-        from msps_render.spectral.render import render_spectral_frame
+        from msps_render.render.spectral import render_spectral_frame
 
         activate("llvm_ad_spectral", args.threads)
         return render_spectral_frame(sspec, mi, "llvm_ad_spectral", emission_in_film=False).image

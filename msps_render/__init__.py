@@ -7,32 +7,37 @@ Small public facade over the pipeline stages (see docs/architecture.md):
     frame = render_frame(spec)                 # Mitsuba is imported only here
     frame.save("out/")
 
-Importing this package imports neither Mitsuba nor torch.
+    render_dataset(load_config("demo"), "out/demo")   # the whole pipeline
+
+Names are loaded on first use, so `import msps_render` (and the training side,
+`msps_render.data` / `msps_render.models`) imports neither Mitsuba nor torch
+nor the scene sampler.
 """
 from __future__ import annotations
+
+import importlib
 
 __version__ = "0.1.0"
 
 from msps_render.errors import InputError
-from msps_render.scene.spec import (CameraSpec, EnvSpec, IntegratorSpec, LightSpec, MaterialSpec,
-                                    SceneSpec, ShapeSpec, SplitSpec)
+
+_LAZY = {  # public name -> module that defines it
+    **dict.fromkeys(("SceneSpec", "ShapeSpec", "SplitSpec", "MaterialSpec", "LightSpec", "EnvSpec",
+                     "CameraSpec", "IntegratorSpec"), "msps_render.scene.spec"),
+    "sample_scene": "msps_render.scene.sample",
+    "SceneConfig": "msps_render.scene.sample",
+    "render_frame": "msps_render.render.render",
+    "Frame": "msps_render.frame",
+    "load_config": "msps_render.pipeline.config",
+    "render_dataset": "msps_render.pipeline.run",
+}
 
 
-def __getattr__(name):  # lazy: keep `import msps_render` free of heavy imports
-    if name == "render_frame":
-        from msps_render.render.render import render_frame
-
-        return render_frame
-    if name in ("sample_scene", "SceneConfig"):
-        from msps_render.scene import sample
-
-        return getattr(sample, name)
-    if name == "Frame":
-        from msps_render.frame import Frame
-
-        return Frame
-    raise AttributeError(name)
+def __getattr__(name):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(name)
+    return getattr(importlib.import_module(module), name)
 
 
-__all__ = ["__version__", "InputError", "SceneSpec", "ShapeSpec", "SplitSpec", "MaterialSpec", "LightSpec",
-           "EnvSpec", "CameraSpec", "IntegratorSpec", "render_frame", "sample_scene", "SceneConfig", "Frame"]
+__all__ = ["__version__", "InputError", *_LAZY]

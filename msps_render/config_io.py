@@ -9,11 +9,23 @@ import tomllib
 from pathlib import Path
 from typing import Any, Callable, TypeVar
 
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict
 
 from msps_render.errors import InputError, closest, format_validation_error
 
 M = TypeVar("M", bound=BaseModel)
+
+
+class StrictModel(BaseModel):
+    """The base of every config and spec model: unknown keys are errors."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class FrozenModel(StrictModel):
+    """A `StrictModel` whose values are immutable once validated (scene data)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
 
 
 def read_toml(path: str | Path, what: str = "config") -> dict:

@@ -8,9 +8,7 @@ shard, so random access costs one HDF5 read per batch instead of per patch.
 """
 from __future__ import annotations
 
-import contextlib
 import os
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
@@ -18,35 +16,15 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler
 
+from msps_render.dataset import (SHARD_DIR, WholeFrame, iter_whole_frames, load_manifest, open_shard,
+                                 read_patches, read_shard_calibration, read_shard_patches, shard_errors,
+                                 verify_dataset)
 from msps_render.errors import InputError
-from msps_render.pipeline.manifest import SHARD_DIR, read_manifest
-
-
-@contextlib.contextmanager
-def _shard_errors(path: Path):
-    """A corrupted or truncated shard (h5py's bare OSError/KeyError) -> InputError naming the file."""
-    try:
-        yield
-    except (OSError, KeyError) as e:
-        from msps_render.errors import brief
-
-        raise InputError(path, f"unreadable shard ({brief(str(e))}); run `msps verify` on the dataset "
-                               "and re-render bad shards with `msps render ... --resume`") from None
 
 
 def _shard_list(root: Path, condition: str | None) -> list[tuple[Path, int, str]]:
-    m = read_manifest(root)
-    if m is None:
-        raise InputError(root, "no dataset.json here (not a dataset directory)")
-    if not m.get("complete", False):
-        raise InputError(root, "dataset is incomplete (finish it with `msps render ... --resume`)")
-    out = []
-    for name in sorted(m["shards"]):
-        e = m["shards"][name]
-        if condition is not None and e.get("condition", "") != condition:
-            continue
-        out.append((root / SHARD_DIR / name, int(e["n_patches"]), e.get("condition", "")))
-    return out
+    m = load_manifest(root)
+    return [(m.shard_path(e.name), e.n_patches, e.condition) for e in m.shards_of(condition)]
 
 
 class PatchDataset(Dataset):
@@ -62,8 +40,6 @@ class PatchDataset(Dataset):
                  verify: bool = False):
         self.root = Path(root)
         if verify:
-            from msps_render.pipeline.verify import verify_dataset
-
             bad = verify_dataset(self.root)
             if bad:
                 name, probs = sorted(bad.items())[0]
@@ -80,26 +56,17 @@ class PatchDataset(Dataset):
     # -------------------------------------------------------------- internals
     @staticmethod
     def _read_meta(path: Path) -> dict:
-        import h5py
-
-        with _shard_errors(path), h5py.File(path, "r") as h:
-            return {"frame_index": h["patches/frame_index"][()], "light_dirs": h["frames/light_dirs"][()],
-                    "crosstalk": h["frames/crosstalk"][()]}
+        return read_shard_calibration(path)
 
     @staticmethod
     def _read_all(path: Path) -> dict:
-        import h5py
-
-        with _shard_errors(path), h5py.File(path, "r") as h:
-            return {k: h[f"patches/{k}"][()] for k in ("image", "normal", "mask")}
+        return read_shard_patches(path)
 
     def _h(self, s: int):
-        import h5py
-
         if self._pid != os.getpid():  # new process (DataLoader worker): reopen everything
             self._handles, self._decoded, self._pid = {}, {}, os.getpid()
         if s not in self._handles:
-            self._handles[s] = h5py.File(self.shards[s][0], "r")
+            self._handles[s] = open_shard(self.shards[s][0])
         return self._handles[s]
 
     def locate(self, idx: int) -> tuple[int, int]:
@@ -119,9 +86,8 @@ class PatchDataset(Dataset):
                 # Decode the whole shard once: h5py fancy indexing costs ~0.3 ms per index and
                 # re-reading spans re-decompresses them; ShardBatchSampler visits a shard's batches
                 # close together, so a small LRU of decoded shards serves them all.
-                with _shard_errors(self.shards[s][0]):
-                    h = self._h(s)
-                    c = {k: h[f"patches/{k}"][()] for k in ("image", "normal", "mask")}
+                with shard_errors(self.shards[s][0]):
+                    c = read_patches(self._h(s))
                 self._decoded[s] = c
                 while len(self._decoded) > self.decoded_shards:
                     self._decoded.pop(next(iter(self._decoded)))
@@ -262,36 +228,7 @@ class ShardBatchSampler(Sampler[list[int]]):
         return len(self._batches())
 
 
-@dataclass
-class FrameRecordView:
-    """A whole test frame with its calibration, for per-object evaluation and prediction."""
-
-    image: np.ndarray
-    normal: np.ndarray
-    mask: np.ndarray
-    light_dirs: np.ndarray
-    crosstalk: np.ndarray
-    object: str
-    materials: str
-    condition: str
-    shard: str
-    index: int
-
-
-def iter_frames(root: str | Path, condition: str | None = None) -> Iterator[FrameRecordView]:
+def iter_frames(root: str | Path, condition: str | None = None) -> Iterator[WholeFrame]:
     """Whole frames of a dataset stored with `store_frames = true`."""
-    import h5py
-
-    root = Path(root)
-    shards = _shard_list(root, condition)
-    for path, _, _ in shards:
-        with h5py.File(path, "r") as h:
-            if "frames/image" not in h:
-                raise InputError(path, "shard has no whole frames (render the preset with store_frames = true)")
-            objs = h["frames/object"].asstr()[()]
-            mats = h["frames/materials"].asstr()[()]
-            conds = h["frames/condition"].asstr()[()]
-            for i in range(len(h["frames/image"])):
-                yield FrameRecordView(h["frames/image"][i], h["frames/normal"][i], h["frames/mask"][i].astype(bool),
-                                      h["frames/light_dirs"][i], h["frames/crosstalk"][i], str(objs[i]),
-                                      str(mats[i]), str(conds[i]), path.name, i)
+    for path, _, _ in _shard_list(Path(root), condition):
+        yield from iter_whole_frames(path)

@@ -6,22 +6,10 @@ can always be traced back to its frame.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
+from msps_render.dataset.schema import Patches
 from msps_render.frame import Frame
-
-
-@dataclass
-class Patches:
-    image: np.ndarray  # (N, P, P, 3) float32
-    normal: np.ndarray  # (N, P, P, 3) float32
-    mask: np.ndarray  # (N, P, P) uint8
-    yx: np.ndarray  # (N, 2) int32, top-left corner in the frame
-
-    def __len__(self) -> int:
-        return len(self.yx)
 
 
 def window_origins(height: int, width: int, size: int, stride: int) -> np.ndarray:

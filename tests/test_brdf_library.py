@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from msps_render.brdf import analytic, library, merl
+from msps_render.scene import materials
 from msps_render.errors import InputError
 
 
@@ -44,12 +45,12 @@ def test_without_measured_materials_there_is_no_silent_fallback(no_merl_env, mon
     """No MERL files and no built-in weights: an error, not generated stand-ins."""
     monkeypatch.setenv("MSPS_BRDF_DIR", str(tmp_path / "empty"))
     with pytest.raises(InputError, match="no measured materials available"):
-        library.sample_materials(np.random.default_rng(0), 4, merl_fraction=1.0)
+        materials.sample_materials(np.random.default_rng(0), 4, merl_fraction=1.0)
 
 
 def test_generated_tables_only_when_asked_and_named(no_merl_env, caplog):
-    with caplog.at_level(logging.INFO, logger="msps_render.brdf.library"):
-        mats = library.sample_materials(np.random.default_rng(0), 4, merl_fraction=1.0, measured="generated")
+    with caplog.at_level(logging.INFO, logger="msps_render.scene.materials"):
+        mats = materials.sample_materials(np.random.default_rng(0), 4, merl_fraction=1.0, measured="generated")
     assert len(mats) == 4 and all(m.kind == "merl" for m in mats)
     assert all(m.name.startswith("generated:") for m in mats)
     assert len({m.name for m in mats}) == 4
@@ -60,20 +61,20 @@ def test_generated_tables_only_when_asked_and_named(no_merl_env, caplog):
 
 
 def test_real_merl_files_are_found_and_preferred(no_merl_env, merl_dir):
-    mats = library.sample_materials(np.random.default_rng(1), 2, merl_fraction=1.0, merl_dir=str(merl_dir),
+    mats = materials.sample_materials(np.random.default_rng(1), 2, merl_fraction=1.0, merl_dir=str(merl_dir),
                                     measured="merl")
     assert sorted(m.name for m in mats) == ["merl:blue-fabric", "merl:white-paint"]
     for m in mats:
         assert library.resolve_table(m) == (merl_dir / f"{m.name[5:]}.binary").resolve()
     # asking for more measured materials than files: the rest are analytic, still distinct
-    mats = library.sample_materials(np.random.default_rng(1), 5, merl_fraction=1.0, merl_dir=str(merl_dir),
+    mats = materials.sample_materials(np.random.default_rng(1), 5, merl_fraction=1.0, merl_dir=str(merl_dir),
                                     measured="merl")
     assert sum(m.kind == "merl" for m in mats) == 2 and len({m.name for m in mats}) == 5
 
 
 def test_env_var_merl_dir_and_catalogue_ids(no_merl_env, merl_dir, monkeypatch):
     monkeypatch.setenv("MSPS_MERL_DIR", str(merl_dir))
-    mats = library.sample_materials(np.random.default_rng(2), 1, merl_fraction=1.0, measured="merl")
+    mats = materials.sample_materials(np.random.default_rng(2), 1, merl_fraction=1.0, measured="merl")
     assert mats[0].name.startswith("merl:")
     from msps_render.scene.spec import MaterialSpec
 
@@ -84,7 +85,7 @@ def test_env_var_merl_dir_and_catalogue_ids(no_merl_env, merl_dir, monkeypatch):
 def test_missing_merl_dir_is_a_clear_error(no_merl_env, tmp_path, monkeypatch):
     missing = tmp_path / "nowhere"
     with pytest.raises(InputError) as e:
-        library.sample_materials(np.random.default_rng(0), 2, merl_fraction=0.5, merl_dir=str(missing))
+        materials.sample_materials(np.random.default_rng(0), 2, merl_fraction=0.5, merl_dir=str(missing))
     msg = str(e.value)
     assert msg.startswith(str(missing)) and "does not exist" in msg and "searched:" in msg
     assert str(library.REPO_BRDF_DIR / "merl") in msg and "\n" not in msg
@@ -92,7 +93,7 @@ def test_missing_merl_dir_is_a_clear_error(no_merl_env, tmp_path, monkeypatch):
     empty.mkdir()
     monkeypatch.setenv("MSPS_MERL_DIR", str(empty))
     with pytest.raises(InputError, match="no MERL .binary files of the catalogue found; searched: .*empty"):
-        library.sample_materials(np.random.default_rng(0), 2, merl_fraction=0.5)
+        materials.sample_materials(np.random.default_rng(0), 2, merl_fraction=0.5)
     from msps_render.scene.spec import MaterialSpec
 
     with pytest.raises(InputError, match="MERL file not found; searched"):
@@ -102,16 +103,16 @@ def test_missing_merl_dir_is_a_clear_error(no_merl_env, tmp_path, monkeypatch):
 
 
 def test_sampling_is_seeded_distinct_and_mixed(no_merl_env):
-    a = library.sample_materials(np.random.default_rng(42), 3, merl_fraction=0.5)
-    b = library.sample_materials(np.random.default_rng(42), 3, merl_fraction=0.5)
+    a = materials.sample_materials(np.random.default_rng(42), 3, merl_fraction=0.5)
+    b = materials.sample_materials(np.random.default_rng(42), 3, merl_fraction=0.5)
     assert a == b
     kinds = []
     for seed in range(200):
-        mats = library.sample_materials(np.random.default_rng(seed), 3, merl_fraction=0.5)
+        mats = materials.sample_materials(np.random.default_rng(seed), 3, merl_fraction=0.5)
         assert len(mats) == 3 and len({m.name for m in mats}) == 3
         kinds += [m.kind == "merl" for m in mats]
     assert 0.4 < np.mean(kinds) < 0.6
-    none = library.sample_materials(np.random.default_rng(0), 3, merl_fraction=0.0, families=["diffuse", "plastic"])
+    none = materials.sample_materials(np.random.default_rng(0), 3, merl_fraction=0.0, families=["diffuse", "plastic"])
     assert all(m.kind in ("diffuse", "plastic") for m in none)
 
 

@@ -264,7 +264,7 @@ def test_merl_module_does_not_import_mitsuba():
     import subprocess
 
     code = ("import sys, msps_render.brdf.merl, msps_render.brdf.analytic, msps_render.brdf.library, "
-            "msps_render.brdf.plugin; print('mitsuba' in sys.modules, 'drjit' in sys.modules)")
+            "msps_render.render.merl_bsdf; print('mitsuba' in sys.modules, 'drjit' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False False"
 

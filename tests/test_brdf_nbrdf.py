@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from msps_render.brdf import analytic, library, merl, nbrdf
+from msps_render.scene import materials
 from msps_render.errors import InputError
 
 # brdf/nbrdf/README.md: (material, theta_h, theta_d, phi_d) -> RGB (1/sr)
@@ -67,13 +68,13 @@ def test_baked_table_matches_reference_values(cache, name):
 def test_auto_prefers_real_merl_file_of_same_name(cache, tmp_path):
     d = tmp_path / "merl"
     merl.write_merl(d / "white-paint.binary", analytic.make_table("lambert", {"albedo": [0.5] * 3}))
-    pool = library.measured_pool(library.load_catalogue(), "auto", merl_dir=d)
+    pool = materials.measured_pool(library.load_catalogue(), "auto", merl_dir=d)
     names = {m.name for m in pool}
     assert "merl:white-paint" in names and "nbrdf:white-paint" not in names
     assert "nbrdf:gold-paint" in names and len(pool) == 80
-    assert {m.name for m in library.measured_pool(library.load_catalogue(), "merl", merl_dir=d)} == \
+    assert {m.name for m in materials.measured_pool(library.load_catalogue(), "merl", merl_dir=d)} == \
         {"merl:white-paint"}
-    only_nbrdf = library.measured_pool(library.load_catalogue(), "nbrdf", merl_dir=d)
+    only_nbrdf = materials.measured_pool(library.load_catalogue(), "nbrdf", merl_dir=d)
     assert len(only_nbrdf) == 80 and all(m.name.startswith("nbrdf:") for m in only_nbrdf)
 
 
@@ -82,9 +83,9 @@ def test_holdout_split_keeps_test_materials_out_of_training(cache):
     assert len(test) == 16 and test <= set(nbrdf.builtin_names())
     seen_train, seen_test = set(), set()
     for s in range(40):
-        for m in library.sample_materials(np.random.default_rng(s), 3, merl_fraction=1.0, holdout="train"):
+        for m in materials.sample_materials(np.random.default_rng(s), 3, merl_fraction=1.0, holdout="train"):
             seen_train.add(m.name.split(":", 1)[1])
-        for m in library.sample_materials(np.random.default_rng(s), 3, merl_fraction=1.0, holdout="test"):
+        for m in materials.sample_materials(np.random.default_rng(s), 3, merl_fraction=1.0, holdout="test"):
             seen_test.add(m.name.split(":", 1)[1])
     assert not (seen_train & test) and len(seen_train) > 30
     assert seen_test <= test and len(seen_test) > 8
@@ -120,7 +121,7 @@ def test_bad_weights_files_are_one_clear_error(tmp_path, content, msg):
 
 def test_missing_split_file_is_a_clear_error(tmp_path):
     with pytest.raises(InputError, match="split file not found") as e:
-        library.sample_materials(np.random.default_rng(0), 2, merl_fraction=1.0, split_file=tmp_path / "nope.toml")
+        materials.sample_materials(np.random.default_rng(0), 2, merl_fraction=1.0, split_file=tmp_path / "nope.toml")
     assert "nope.toml" in str(e.value)
 
 

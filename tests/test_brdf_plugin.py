@@ -38,7 +38,7 @@ def use_variant(name: str) -> None:
     from tests.conftest import variant_or_skip
 
     variant_or_skip(name)
-    from msps_render.brdf.plugin import register
+    from msps_render.render.merl_bsdf import register
 
     register()
 
@@ -112,7 +112,7 @@ def test_importance_sampling_beats_cosine_on_shiny_table(tables):
 # --------------------------------------------------------- lookup semantics
 def test_reciprocity_is_exact(tables):
     use_variant("llvm_ad_rgb")
-    from msps_render.brdf.plugin import merl_index
+    from msps_render.render.merl_bsdf import merl_index
 
     rng = np.random.default_rng(11)
     wi, wo = _random_dirs(rng, 100_000), _random_dirs(rng, 100_000)
@@ -260,8 +260,8 @@ def test_conductor_table_renders_like_roughconductor(tables):
 # --------------------------------------------------------- contract with scene
 def test_material_spec_to_mitsuba_registers_once(tables, monkeypatch, tmp_path):
     use_variant("llvm_ad_rgb")
-    from msps_render.brdf import plugin
-    from msps_render.scene.materials import to_mitsuba
+    from msps_render.render import merl_bsdf as plugin
+    from msps_render.render.materials import to_mitsuba
     from msps_render.scene.spec import MaterialSpec
 
     monkeypatch.setenv("MSPS_CACHE_DIR", str(tmp_path))
@@ -270,9 +270,9 @@ def test_material_spec_to_mitsuba_registers_once(tables, monkeypatch, tmp_path):
     d1 = to_mitsuba(m)
     d2 = to_mitsuba(m)
     assert d1 == d2 and d1["type"] == "merl" and d1["filename"].startswith(str(tmp_path))
-    before = plugin._device_table.cache_info()
+    before = plugin.device_table.cache_info()
     b1, b2 = mi.load_dict(d1), mi.load_dict(d2)
-    after = plugin._device_table.cache_info()
+    after = plugin.device_table.cache_info()
     assert after.currsize - before.currsize <= 1 and after.hits > before.hits  # table loaded once
     assert "MerlBSDF" in str(b1) and str(b1) == str(b2)
     direct = MaterialSpec(name="merl:x", kind="merl", params={"table": tables["lambert"]})
@@ -283,7 +283,7 @@ def test_material_spec_to_mitsuba_registers_once(tables, monkeypatch, tmp_path):
 def test_corrupt_table_fails_before_mitsuba_with_input_error(tmp_path):
     use_variant("llvm_ad_rgb")
     from msps_render.errors import InputError
-    from msps_render.scene.materials import to_mitsuba
+    from msps_render.render.materials import to_mitsuba
     from msps_render.scene.spec import MaterialSpec
 
     bad = tmp_path / "broken.binary"

@@ -21,9 +21,9 @@ import pytest
 
 from msps_render.errors import InputError, Interrupted
 from msps_render.pipeline.config import load_config
-from msps_render.pipeline.manifest import read_manifest
+from msps_render.dataset.manifest import read_manifest
 from msps_render.pipeline.run import render_dataset
-from msps_render.shards import file_digest, read_digests
+from msps_render.dataset import file_digest, read_digests
 
 TINY = """
 [dataset]

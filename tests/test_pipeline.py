@@ -15,10 +15,10 @@ import pytest
 
 from msps_render.errors import InputError
 from msps_render.pipeline.config import load_config
-from msps_render.pipeline.manifest import read_manifest
+from msps_render.dataset.manifest import read_manifest
 from msps_render.pipeline.run import render_dataset
-from msps_render.pipeline.verify import verify_dataset
-from msps_render.shards import read_digests
+from msps_render.dataset.verify import verify_dataset
+from msps_render.dataset import read_digests
 
 TINY = """
 [dataset]
@@ -242,10 +242,10 @@ def test_bad_config_inputs(tmp_path):
 
 
 def test_full_disk_leaves_no_partial_shard(tmp_path, monkeypatch):
-    import msps_render.shards as shards
+    from msps_render.dataset import writer
 
     cfg = load_config(tiny_config(tmp_path, n_shards=1))
-    real = shards._dataset
+    real = writer.create_array
     calls = {"n": 0}
 
     def failing(g, name, data, compression, chunks=None):
@@ -254,7 +254,7 @@ def test_full_disk_leaves_no_partial_shard(tmp_path, monkeypatch):
             raise OSError(28, "No space left on device")
         return real(g, name, data, compression, chunks)
 
-    monkeypatch.setattr(shards, "_dataset", failing)
+    monkeypatch.setattr(writer, "create_array", failing)
     out = tmp_path / "full"
     with pytest.raises(OSError, match="No space left"):
         render_dataset(cfg, out, progress=False, variant=_variant())

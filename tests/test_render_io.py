@@ -149,7 +149,7 @@ def test_variant_fallback_to_scalar(monkeypatch, scalar_variant):
                      camera=CameraSpec(width=24, height=24), integrator=IntegratorSpec(kind="direct", spp=16))
     f = render_frame(spec, variant=v)
     assert f.variant == "scalar_rgb"
-    from msps_render.render import analytic_sphere_normals
+    from msps_render.testing import analytic_sphere_normals
 
     n, disk = analytic_sphere_normals(24, 24, 1.05, 1.0)
     from scipy.ndimage import binary_erosion

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from scipy.ndimage import binary_erosion
 
-from msps_render.render import analytic_sphere_normals, render_frame
+from msps_render.render import render_frame
+from msps_render.testing import analytic_sphere_normals
 from msps_render.scene.lights import direction_from_slant_tilt, three_lights
 from msps_render.scene.materials import lambertian
 from msps_render.scene.spec import CameraSpec, IntegratorSpec, LightSpec, SceneSpec, ShapeSpec

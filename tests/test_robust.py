@@ -164,7 +164,7 @@ def _frame(image):
 
 def test_sensor_model_noise_saturation_quantisation():
     from msps_render.spectral.config import SensorConfig
-    from msps_render.spectral.sensor import apply_sensor
+    from msps_render.render.sensor import apply_sensor
 
     rng0 = np.random.default_rng(0)
     clean = rng0.uniform(0.0, 2.0, size=(32, 32, 3))

@@ -69,7 +69,8 @@ def test_paper_single_render_equals_three_white_render_mix(rgb_variant):
 def test_spectral_sphere_matches_colour_closed_form(spectral_variant):
     import colour
 
-    from msps_render.render import analytic_sphere_normals, render_frame
+    from msps_render.render import render_frame
+    from msps_render.testing import analytic_sphere_normals
 
     slant, tilt, total = 30.0, 45.0, 2.0
     l = direction_from_slant_tilt(slant, tilt)
@@ -228,7 +229,7 @@ def test_emission_in_film_equals_literal_spectral_setup(spectral_variant):
     literal set-up (lights emit their spectra, bands = camera), and far less colour noise."""
     import mitsuba as mi
 
-    from msps_render.spectral.render import render_spectral_frame
+    from msps_render.render.spectral import render_spectral_frame
 
     M = effective_crosstalk(LEDS, CAMERA)
     lights = tuple(l.model_copy(update={"spectrum": s})

@@ -1,31 +1,23 @@
-"""The material library: catalogue loading, MERL file discovery and material sampling.
+"""The material library: catalogue loading, MERL file discovery, the held-out split,
+and the table behind a measured material (`resolve_table`).
 
-`sample_materials(rng, n, ...)` draws `n` distinct materials, a configurable
-share of them measured (`kind="merl"`). A measured material is the real MERL
-file when one can be found, otherwise the built-in Neural-BRDF fit of the same
-material (`brdf/nbrdf/`, baked into a MERL table on first use), named `merl:<name>`
-or `nbrdf:<name>` so every log, SceneSpec and shard says which was used.
-MERL-format tables generated from analytic models (`generated:<name>`) are used
-only when asked for (`measured="generated"`), never as a silent fallback.
-Held-out materials (`brdf/split.toml`) are excluded from training corpora.
-Nothing is downloaded.
+Measured tables are real MERL files, built-in Neural-BRDF fits (`brdf/nbrdf/`,
+baked into a MERL table on first use) or tables generated from analytic models
+(`generated:<name>`, only when asked for).  Held-out materials
+(`brdf/split.toml`) are excluded from training corpora.  Nothing is
+downloaded.  Drawing materials for a scene is `msps_render.scene.materials`.
 """
 from __future__ import annotations
 
 import functools
-import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from msps_render.errors import InputError
-from msps_render.scene.spec import MaterialSpec
+from msps_render.resources import shipped_dir
 
-log = logging.getLogger(__name__)
-
-REPO_BRDF_DIR = Path(__file__).resolve().parents[2] / "brdf"
+REPO_BRDF_DIR = shipped_dir("brdf")
 DEFAULT_CATALOGUE = REPO_BRDF_DIR / "catalogue.toml"
 DEFAULT_SPLIT = REPO_BRDF_DIR / "split.toml"
 SOURCES = ("merl", "generated", "analytic")
@@ -76,8 +68,7 @@ def _catalogue_path(catalogue: str | os.PathLike | None) -> Path:
 @functools.lru_cache(maxsize=32)
 def _load_catalogue(path: str) -> Catalogue:
     from msps_render.brdf.analytic import MODELS
-    from msps_render.scene.materials import FAMILIES
-
+    from msps_render.brdf.families import FAMILIES
     from msps_render.config_io import read_toml
 
     p = Path(path)
@@ -172,101 +163,6 @@ def held_out(split_file: str | os.PathLike | None = None) -> frozenset[str]:
     return names
 
 
-def measured_pool(cat: Catalogue, measured: str = "auto", merl_dir: str | os.PathLike | None = None
-                  ) -> list[MaterialSpec]:
-    """Every measured material available under `measured`:
-
-    'auto' = per catalogue entry the real MERL file if found, else the built-in
-    Neural-BRDF fit; 'merl' = real files only; 'nbrdf' = built-in fits only;
-    'generated' = the analytic stand-ins (explicit, never a fallback).
-    """
-    from msps_render.brdf import nbrdf
-
-    if measured not in MEASURED:
-        raise InputError("materials.measured", f"unknown source '{measured}' (known: {', '.join(MEASURED)})")
-    if measured == "generated":
-        return [_measured_spec(e, None) for e in cat.by_source("generated")]
-    dirs = merl_search_dirs(merl_dir)
-    pool = []
-    for e in cat.by_source("merl"):
-        real = find_merl(e.target, dirs) if measured in ("auto", "merl") else None
-        if real is not None:
-            pool.append(_measured_spec(e, real))
-        elif measured in ("auto", "nbrdf") and nbrdf.weights_path(Path(e.target).stem) is not None:
-            stem = Path(e.target).stem
-            pool.append(MaterialSpec(name=f"nbrdf:{e.name}", kind="merl", params={"table": f"nbrdf:{stem}"}))
-    return pool
-
-
-def _measured_spec(e: Entry, path: Path | None) -> MaterialSpec:
-    if e.source == "merl":
-        return MaterialSpec(name=f"merl:{e.name}", kind="merl", params={"table": str(path)})
-    params = {"table": f"generated:{e.name}", "model": e.target}
-    for k, v in e.params.items():
-        params[k] = tuple(float(x) for x in v) if isinstance(v, (list, tuple)) else float(v)
-    return MaterialSpec(name=f"generated:{e.name}", kind="merl", params=params)
-
-
-def _base_name(m: MaterialSpec) -> str:
-    return m.name.split(":", 1)[1] if ":" in m.name else m.name
-
-
-def sample_materials(rng: np.random.Generator, n: int, catalogue: str | os.PathLike | None = None,
-                     merl_fraction: float = 0.5, merl_dir: str | os.PathLike | None = None,
-                     families: list[str] | None = None, require_merl: bool | None = None,
-                     measured: str = "auto", holdout: str = "train",
-                     split_file: str | os.PathLike | None = None) -> list[MaterialSpec]:
-    """Draw `n` distinct materials; each is measured with probability `merl_fraction`.
-
-    Measured materials come from `measured_pool(measured)`, restricted by
-    `holdout` to the training side ('train': held-out materials excluded),
-    the held-out side ('test') or everything ('all'). An empty pool is an
-    InputError, never a silent substitution. `require_merl` (default: true when
-    `merl_dir` or $MSPS_MERL_DIR is set) makes missing real MERL files an error
-    listing every place searched. Analytic ones use `families` (config) or the
-    catalogue's analytic entries. Consumes `rng` in a fixed order.
-    """
-    from msps_render.scene.materials import sample_analytic
-
-    if n < 1:
-        raise ValueError(f"need at least one material, got n={n}")
-    if not 0.0 <= merl_fraction <= 1.0:
-        raise InputError("materials.merl_fraction", f"must be in [0, 1], got {merl_fraction}")
-    if holdout not in HOLDOUT:
-        raise InputError("materials.holdout", f"unknown value '{holdout}' (known: {', '.join(HOLDOUT)})")
-    cat = load_catalogue(catalogue)
-    if require_merl is None:
-        require_merl = merl_fraction > 0 and bool(merl_dir or os.environ.get("MSPS_MERL_DIR"))
-    pool: list[MaterialSpec] = []
-    if merl_fraction > 0:
-        if require_merl and measured in ("auto", "merl") and not available_merl(cat, merl_dir):
-            where = merl_dir or os.environ.get("MSPS_MERL_DIR")
-            missing = "" if Path(where).is_dir() else " (directory does not exist)"
-            searched = ", ".join(str(d) for d in merl_search_dirs(merl_dir))
-            raise InputError(where, f"no MERL .binary files of the catalogue found{missing}; searched: {searched}")
-        pool = measured_pool(cat, measured, merl_dir)
-        if holdout != "all" and measured != "generated":
-            test = held_out(split_file)
-            pool = [m for m in pool if (_base_name(m) in test) == (holdout == "test")]
-        if not pool:
-            raise InputError(cat.path, f"no measured materials available (measured='{measured}', "
-                                       f"holdout='{holdout}'); add MERL files or the built-in brdf/nbrdf/ weights, "
-                                       "or set materials.merl_fraction = 0")
-    n_measured = min(int(rng.binomial(n, merl_fraction)), len(pool)) if pool else 0
-    measured_mats = [pool[i] for i in rng.choice(len(pool), size=n_measured, replace=False)] if n_measured else []
-    fams = list(families) if families else [e.target for e in cat.by_source("analytic")]
-    k = n - n_measured
-    if k and not fams:
-        raise InputError(cat.path, "no analytic families to draw from (and not enough measured materials)")
-    picks = rng.choice(len(fams), size=k, replace=len(fams) < k) if k else []
-    analytic = [sample_analytic(fams[int(i)], rng) for i in picks]
-    mats = measured_mats + analytic
-    order = rng.permutation(len(mats))
-    out = [mats[int(i)] for i in order]
-    log.info("materials: %s", ", ".join(m.name for m in out))
-    return out
-
-
 def _search_merl_name(name: str) -> Path:
     dirs = merl_search_dirs()
     p = find_merl(name if name.endswith(".binary") else f"{name}.binary", dirs)
@@ -275,8 +171,9 @@ def _search_merl_name(name: str) -> Path:
     return p
 
 
-def resolve_table(m: MaterialSpec) -> Path:
-    """The `.binary` file behind a kind='merl' MaterialSpec (building a generated table if needed).
+def resolve_table(m) -> Path:
+    """The `.binary` file behind a kind='merl' material (a `MaterialSpec`, or anything with
+    `name` and `params`), building a generated table if needed.
 
     params["table"]: an absolute path; "merl:<name>" (searched like the catalogue);
     or "generated:<name>" with "model" and the model's parameters in params.

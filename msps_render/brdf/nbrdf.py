@@ -20,6 +20,7 @@ import numpy as np
 
 from msps_render.brdf import merl
 from msps_render.errors import InputError
+from msps_render.resources import data_dir
 
 BAKE_VERSION = 1  # bump when the baking rule changes
 _LAYERS = (("dense_1", (6, 21)), ("dense_2", (21, 21)), ("dense_3", (21, 3)))
@@ -90,9 +91,7 @@ def make_table(w: NbrdfWeights) -> np.ndarray:
 
 def builtin_dir() -> Path:
     """The shipped weights: `brdf/nbrdf/` of the checkout or of the installed package data."""
-    from msps_render.brdf.library import brdf_root
-
-    return brdf_root() / "nbrdf"
+    return data_dir("brdf") / "nbrdf"
 
 
 def weights_path(name: str) -> Path | None:

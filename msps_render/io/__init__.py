@@ -1,1 +1,1 @@
-"""File formats: EXR/PNG images (meshes are read by trimesh in scene.shapes)."""
+"""File formats: images (`images.FORMATS`); meshes are read by trimesh in scene.shapes."""

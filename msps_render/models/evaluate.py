@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from msps_render.errors import InputError
+from msps_render.dataset import Manifest, load_manifest
 from msps_render.models.baseline import angular_error_deg, lambertian_ps
 
 
@@ -72,7 +73,6 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
              max_patches: int | None = None, verify: bool = True) -> dict:
     """Evaluate a checkpoint (`method="net"`) or the Lambertian baseline on a dataset directory."""
     from msps_render.data import PatchDataset, iter_frames, make_loader
-    from msps_render.pipeline.manifest import read_manifest
 
     if method not in ("net", "lambertian"):
         raise InputError("--method", f"unknown method '{method}' (net or lambertian)")
@@ -81,11 +81,9 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
 
         checkpoint = default_checkpoint()
     data, out = Path(data), Path(out)
-    m = read_manifest(data)
-    if m is None:
-        raise InputError(data, "no dataset.json here (not a dataset directory)")
+    m = load_manifest(data, need_complete=False)
     pred = _Predictor(checkpoint, method)
-    conditions = m.get("conditions") or [""]
+    conditions = [c.name for c in m.conditions]
     report: dict = {"data": str(data), "method": method, "checkpoint": str(checkpoint) if checkpoint else None,
                     "conditions": {}}
     for cond in conditions:
@@ -128,14 +126,24 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
     return report
 
 
-def robustness(report: dict, manifest: dict) -> dict:
+REFERENCE_VALUES = (0, 30)  # the training-like condition of a sweep: no env light, or the 30 deg slant
+
+
+def robustness(report: dict, manifest: Manifest) -> dict:
     """MAE per condition and alpha = |chi - chi'| / chi against the reference (training-like) condition."""
     conds = list(report["conditions"])
+    typed = {c.name: c for c in manifest.conditions}
+    values = {c: typed[c].value if c in typed else None for c in conds}
     mae = {c: report["conditions"][c]["patches"]["mae_deg"] for c in conds}
-    ref = next((c for c in conds if c.endswith("=0") or c.endswith("=0.0") or c.endswith("=30.0")
-                or c.endswith("=30")), conds[0])
+    ref = next((c for c in conds if _is_number(values[c]) and float(values[c]) in REFERENCE_VALUES), conds[0])
     chi = mae[ref]
-    return {"reference": ref, "mae_deg": mae, "alpha": {c: abs(chi - v) / chi for c, v in mae.items()}}
+    key = next((typed[c].key for c in conds if c in typed and typed[c].key), None)
+    return {"reference": ref, "key": key, "values": values, "mae_deg": mae,
+            "alpha": {c: abs(chi - v) / chi for c, v in mae.items()}}
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
 def _write_tables(report: dict, out: Path) -> None:
@@ -153,17 +161,14 @@ def _write_tables(report: dict, out: Path) -> None:
     rb = report.get("robustness")
     if rb:
         names = list(rb["mae_deg"])
-        xs = []
-        for n in names:
-            try:
-                xs.append(float(n.split("=")[-1]))
-            except ValueError:
-                xs.append(float(len(xs)))
+        values = rb.get("values", {})
+        xs = [float(values[n]) if _is_number(values.get(n)) else float(i) for i, n in enumerate(names)]
+        label = (rb.get("key") or "condition").split(".")[-1]
         fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
         ax[0].plot(xs, [rb["mae_deg"][n] for n in names], "o-")
-        ax[0].set(xlabel=names[0].split("=")[0], ylabel="MAE (deg)", title=report["method"])
+        ax[0].set(xlabel=label, ylabel="MAE (deg)", title=report["method"])
         ax[1].plot(xs, [rb["alpha"][n] for n in names], "o-", color="C1")
-        ax[1].set(xlabel=names[0].split("=")[0], ylabel="fluctuation ratio alpha")
+        ax[1].set(xlabel=label, ylabel="fluctuation ratio alpha")
         fig.tight_layout()
         fig.savefig(out / "robustness.png", dpi=90)
         plt.close(fig)

@@ -55,7 +55,7 @@ def predict_image(model, image: np.ndarray, mask: np.ndarray, tile: int = 40, st
 
 def load_calibration(path: str | Path | None, light_dirs: str | None, crosstalk: str | None):
     """Light directions (3x3, rows toward the lights) and crosstalk (3x3) from a JSON file or flags."""
-    from msps_render.scene.lights import PAPER_CROSSTALK, direction_from_slant_tilt
+    from msps_render.calibration import PAPER_CROSSTALK, direction_from_slant_tilt
 
     L = np.array([direction_from_slant_tilt(30.0, t) for t in (0, 120, 240)])
     M = PAPER_CROSSTALK.copy()
@@ -126,9 +126,9 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
 
 def default_checkpoint() -> Path:
     """The small checkpoint shipped in models/ (trained by docs/reproducing.md)."""
-    from msps_render.models.presets import MODEL_DIR
+    from msps_render.resources import data_dir
 
-    p = MODEL_DIR / "dualcue-cpu.pt"
+    p = data_dir("models") / "dualcue-cpu.pt"
     if not p.is_file():
         raise InputError(p, "no shipped checkpoint; pass --checkpoint")
     return p

@@ -4,18 +4,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
+from msps_render import resources
+from msps_render.config_io import StrictModel, apply_overrides, read_toml, validate
 from msps_render.errors import InputError
 
-MODEL_DIR = Path(__file__).resolve().parents[2] / "models"
 
 
-class _Cfg(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class NetSection(_Cfg):
+class NetSection(StrictModel):
     branch: int = Field(8, ge=1)
     unet: tuple[int, int, int, int] = (24, 48, 64, 96)
     pcn_branch: int = Field(32, ge=1)
@@ -23,7 +20,7 @@ class NetSection(_Cfg):
     mode: Literal["dual", "scn", "pcn"] = "dual"
 
 
-class TrainSection(_Cfg):
+class TrainSection(StrictModel):
     batch_size: int = Field(24, ge=1)
     lr: float = Field(1e-3, gt=0)
     betas: tuple[float, float] = (0.9, 0.999)
@@ -37,7 +34,7 @@ class TrainSection(_Cfg):
     num_workers: int = Field(0, ge=0)
 
 
-class ModelConfig(_Cfg):
+class ModelConfig(StrictModel):
     preset: str = "custom"
     net: NetSection = NetSection()
     train: TrainSection = TrainSection()
@@ -50,13 +47,8 @@ class ModelConfig(_Cfg):
 
 
 def load_model_config(path_or_name: str | Path, overrides: list[str] = ()) -> ModelConfig:
-    from msps_render.config_io import apply_overrides, read_toml, validate
-
-    p = Path(path_or_name)
-    if not p.is_file():
-        cand = MODEL_DIR / f"{path_or_name}.toml"
-        if not cand.is_file():
-            known = sorted(q.stem for q in MODEL_DIR.glob("*.toml"))
-            raise InputError(p, f"model config not found (presets: {', '.join(known)})")
-        p = cand
+    p = resources.find("models", path_or_name)
+    if p is None:
+        known = ", ".join(resources.names("models"))
+        raise InputError(Path(path_or_name), f"model config not found (presets: {known})")
     return validate(ModelConfig, apply_overrides(read_toml(p, "model config"), overrides), p)

@@ -27,7 +27,7 @@ from msps_render.models.presets import ModelConfig
 
 
 def data_hash(root: str | Path) -> str:
-    from msps_render.pipeline.manifest import read_manifest
+    from msps_render.dataset.manifest import read_manifest
 
     m = read_manifest(root)
     if m is None:

@@ -12,33 +12,30 @@ import json
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, model_validator
+from pydantic import Field, PrivateAttr, model_validator
 
-from msps_render.config_io import apply_overrides, read_toml, set_path, validate
+from msps_render import resources
+from msps_render.config_io import StrictModel, apply_overrides, read_toml, set_path, validate
 from msps_render.errors import InputError
 from msps_render.scene.sample import SceneConfig
 
-PRESET_DIR = Path(__file__).resolve().parents[2] / "scenes"
+PRESET_DIR = resources.data_dir("scenes")  # where `load_config("<name>")` looks (see msps_render.resources)
 
 
-class _Cfg(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class PatchConfig(_Cfg):
+class PatchConfig(StrictModel):
     size: int = Field(40, ge=8, le=512)
     stride: int = Field(20, ge=1, le=512)
     min_coverage: float = Field(0.5, ge=0.0, le=1.0, description="fraction of object pixels to keep a patch")
 
 
-class StorageConfig(_Cfg):
+class StorageConfig(StrictModel):
     compression: Literal["lzf", "gzip", "none"] = "lzf"
     image_dtype: Literal["float16", "float32"] = "float16"
     normal_dtype: Literal["float16", "float32"] = "float16"
     store_frames: bool = Field(False, description="also keep whole frames (test sets)")
 
 
-class DatasetSection(_Cfg):
+class DatasetSection(StrictModel):
     name: str = "dataset"
     seed: int = Field(0, ge=0)
     n_shards: int = Field(4, ge=1, le=100000)
@@ -47,12 +44,12 @@ class DatasetSection(_Cfg):
     storage: StorageConfig = StorageConfig()
 
 
-class SweepConfig(_Cfg):
+class SweepConfig(StrictModel):
     key: str
     values: list[Any] = Field(min_length=1)
 
 
-class DatasetConfig(_Cfg):
+class DatasetConfig(StrictModel):
     dataset: DatasetSection = DatasetSection()
     scene: SceneConfig = SceneConfig()
     sweep: SweepConfig | None = None
@@ -98,14 +95,11 @@ def _qualify(key: str) -> str:
 
 
 def resolve_preset(path_or_name: str | Path) -> Path:
-    p = Path(path_or_name)
-    if p.is_file():
-        return p
-    cand = PRESET_DIR / f"{path_or_name}.toml"
-    if cand.is_file():
-        return cand
-    known = sorted(q.stem for q in PRESET_DIR.glob("*.toml")) if PRESET_DIR.is_dir() else []
-    raise InputError(p, f"config file not found (presets: {', '.join(known) or 'none'})")
+    p = resources.find("scenes", path_or_name)
+    if p is None:
+        raise InputError(Path(path_or_name), f"config file not found (presets: "
+                                             f"{', '.join(resources.names('scenes')) or 'none'})")
+    return p
 
 
 def load_config(path_or_name: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> DatasetConfig:

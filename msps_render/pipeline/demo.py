@@ -11,7 +11,7 @@ def run_demo(out_dir: str | Path, workers: int = 1) -> Path:
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.preview import preview_dataset
     from msps_render.pipeline.run import render_dataset
-    from msps_render.pipeline.verify import verify_dataset
+    from msps_render.dataset.verify import verify_dataset
 
     out = Path(out_dir)
     cfg = load_config("demo")

@@ -22,7 +22,7 @@ import numpy as np
 
 from msps_render.errors import WorkerDied
 from msps_render.pipeline.config import DatasetConfig
-from msps_render.pipeline.manifest import SHARD_DIR
+from msps_render.dataset.manifest import SHARD_DIR
 from msps_render.pipeline.plan import Task, frame_rngs, frame_seed
 
 
@@ -38,9 +38,9 @@ def render_shard(task: Task, ws: WorkerSettings) -> dict:
     import msps_render
     from msps_render.patches import patchify
     from msps_render.render import render_frame
-    from msps_render.render.render import release_frame_memory
+    from msps_render.render.memory import release_frame_memory
     from msps_render.scene.sample import sample_scene
-    from msps_render.shards import FrameRecord, Patches, ShardContent, write_shard
+    from msps_render.dataset import FrameRecord, Patches, ShardContent, write_shard
 
     cfg = DatasetConfig.model_validate_json(task.config_json)
     d = cfg.dataset
@@ -55,7 +55,7 @@ def render_shard(task: Task, ws: WorkerSettings) -> dict:
         render_s += time.perf_counter() - tr
         sensor = getattr(cfg.scene, "sensor", None)  # optional sensor model (msps_render.spectral)
         if sensor is not None and getattr(sensor, "enabled", True):
-            from msps_render.spectral.sensor import apply_sensor
+            from msps_render.render.sensor import apply_sensor
 
             frame = apply_sensor(frame, sensor, rng)
         p = patchify(frame, d.patches.size, d.patches.stride, d.patches.min_coverage)
@@ -75,11 +75,7 @@ def render_shard(task: Task, ws: WorkerSettings) -> dict:
             normal=frame.normal if d.storage.store_frames else None,
             mask=frame.mask if d.storage.store_frames else None))
     P = d.patches.size
-    cat = Patches(
-        image=np.concatenate([p.image for p in pats]) if pats else np.zeros((0, P, P, 3), np.float32),
-        normal=np.concatenate([p.normal for p in pats]) if pats else np.zeros((0, P, P, 3), np.float32),
-        mask=np.concatenate([p.mask for p in pats]) if pats else np.zeros((0, P, P), np.uint8),
-        yx=np.concatenate([p.yx for p in pats]) if pats else np.zeros((0, 2), np.int32))
+    cat = Patches.concat(pats, P)
     import mitsuba as mi
 
     attrs = {"toolkit_version": msps_render.__version__, "mitsuba_version": mi.__version__,

@@ -10,6 +10,7 @@ comparisons need).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -24,6 +25,8 @@ class Task:
     shard_in_condition: int
     seed: int  # root seed
     config_json: str  # resolved config of this condition (no sweep)
+    sweep_key: str | None = None  # the swept config key (None without a sweep)
+    condition_value: Any = None  # its value in this condition (typed, as in the config)
 
 
 def plan(cfg: DatasetConfig) -> list[Task]:
@@ -34,7 +37,8 @@ def plan(cfg: DatasetConfig) -> list[Task]:
         for k in range(cfg.dataset.n_shards):
             i = c * cfg.dataset.n_shards + k
             tasks.append(Task(index=i, name=f"shard-{i:05d}.h5", condition=cond, shard_in_condition=k,
-                              seed=cfg.dataset.seed, config_json=cj))
+                              seed=cfg.dataset.seed, config_json=cj,
+                              sweep_key=cfg.sweep.key if cfg.sweep else None, condition_value=value))
     return tasks
 
 

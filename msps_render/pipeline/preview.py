@@ -5,12 +5,32 @@ from pathlib import Path
 
 import numpy as np
 
-from msps_render.pipeline.manifest import SHARD_DIR, read_manifest
+from msps_render.dataset import SHARD_DIR, open_shard, read_frame_table, read_manifest
+from msps_render.dataset.reader import n_whole_frames, read_whole_frame
+from msps_render.dataset.schema import PATCH_IMAGE, PATCH_MASK, PATCH_NORMAL
 from msps_render.preview import normal_to_rgb8, tonemap
 
 
+def _samples(path: Path, n: int, per_shard: int, rng: np.random.Generator) -> tuple[list, list[float]]:
+    """Up to `n` (image, normal, mask) of a shard (whole frames if stored, else random patches)
+    and the mask coverage of every patch."""
+    with open_shard(path) as h:
+        msk = h[PATCH_MASK][()]
+        N = len(msk)
+        cover = msk.reshape(N, -1).mean(1).tolist()
+        if n <= 0:
+            return [], cover
+        if n_whole_frames(h):
+            return [read_whole_frame(h, i) for i in range(min(n_whole_frames(h), n))], cover
+        out = []
+        if N:
+            for i in sorted(rng.choice(N, size=min(N, per_shard), replace=False)):
+                out.append((h[PATCH_IMAGE][i].astype(np.float32), h[PATCH_NORMAL][i].astype(np.float32),
+                            msk[i].astype(bool)))
+        return out, cover
+
+
 def preview_dataset(root: str | Path, out: str | Path, n: int = 8, seed: int = 0) -> Path:
-    import h5py
     import matplotlib
 
     matplotlib.use("Agg")
@@ -22,21 +42,15 @@ def preview_dataset(root: str | Path, out: str | Path, n: int = 8, seed: int = 0
     rng = np.random.default_rng(seed)
     samples, slants, mats, cover, objects, conds = [], [], [], [], [], []
     for name in names:
-        with h5py.File(root / SHARD_DIR / name, "r") as h:
-            N = len(h["patches/mask"])
-            msk = h["patches/mask"][()]
-            cover.extend(msk.reshape(N, -1).mean(1).tolist())
-            slants.extend(h["frames/slant_deg"][()].tolist())
-            mats.extend(s for ms in h["frames/materials"].asstr()[()] for s in ms.split(";"))
-            objects.extend(h["frames/object"].asstr()[()].tolist())
-            conds.extend(h["frames/condition"].asstr()[()].tolist())
-            if "frames/image" in h and len(samples) < n:
-                for i in range(min(len(h["frames/image"]), n - len(samples))):
-                    samples.append((h["frames/image"][i], h["frames/normal"][i], h["frames/mask"][i].astype(bool)))
-            elif N and len(samples) < n:
-                for i in sorted(rng.choice(N, size=min(N, max(1, n // max(1, len(names)))), replace=False)):
-                    samples.append((h["patches/image"][i].astype(np.float32),
-                                    h["patches/normal"][i].astype(np.float32), msk[i].astype(bool)))
+        path = root / SHARD_DIR / name
+        table = read_frame_table(path)
+        slants.extend(table["slant_deg"])
+        mats.extend(s for ms in table["materials"] for s in ms.split(";"))
+        objects.extend(table["object"])
+        conds.extend(table["condition"])
+        got, cov = _samples(path, n - len(samples), max(1, n // max(1, len(names))), rng)
+        samples.extend(got)
+        cover.extend(cov)
     samples = samples[:n]
     fig = plt.figure(figsize=(2.0 * max(len(samples), 4), 9.5))
     gs = fig.add_gridspec(4, max(len(samples), 4), height_ratios=[1, 1, 1, 1.4])

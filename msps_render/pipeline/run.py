@@ -10,12 +10,12 @@ from pathlib import Path
 from msps_render.errors import InputError, Interrupted
 from msps_render.pipeline.config import DatasetConfig, config_hash, config_json
 from msps_render.pipeline.execute import WorkerSettings, run_dask, run_local
-from msps_render.pipeline.manifest import MANIFEST, SHARD_DIR, new_manifest, read_manifest, write_manifest
+from msps_render.dataset.manifest import MANIFEST, SHARD_DIR, new_manifest, read_manifest, write_manifest
 from msps_render.pipeline.outdir import (OutLock, check_out_dir, remove_dataset, remove_if_empty,
                                          remove_temporaries, remove_unrecorded)
 from msps_render.pipeline.validate import validate_inputs
 from msps_render.pipeline.plan import plan
-from msps_render.shards import file_digest
+from msps_render.dataset import file_digest
 
 
 def _versions(variant: str) -> dict:

@@ -81,7 +81,7 @@ def _check_envmap(sc) -> None:
 
 
 def _check_crosstalk(sc) -> None:
-    from msps_render.scene.lights import check_crosstalk
+    from msps_render.calibration import check_crosstalk
 
     if sc.mode == "spectral":
         from msps_render.spectral.config import SpectralConfig

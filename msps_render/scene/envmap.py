@@ -12,41 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from msps_render.errors import InputError
-
-
-def _read_exr(p: Path) -> np.ndarray:
-    import OpenEXR
-
-    try:
-        with OpenEXR.File(str(p)) as f:
-            ch = f.channels()
-            if "RGB" in ch:
-                img = np.asarray(ch["RGB"].pixels)
-            elif "RGBA" in ch:
-                img = np.asarray(ch["RGBA"].pixels)[..., :3]
-            elif all(c in ch for c in "RGB"):
-                img = np.stack([np.asarray(ch[c].pixels) for c in "RGB"], axis=-1)
-            elif "Y" in ch:
-                img = np.repeat(np.asarray(ch["Y"].pixels)[..., None], 3, axis=-1)
-            else:
-                raise InputError(p, f"EXR has no RGB channels (found: {', '.join(ch)})")
-    except InputError:
-        raise
-    except Exception as e:
-        raise InputError(p, f"cannot read EXR ({str(e)[:120]})") from None
-    return img.astype(np.float32)
-
-
-def _read_hdr(p: Path) -> np.ndarray:
-    import mitsuba as mi  # Bitmap works without a variant; reads Radiance RGBE
-
-    try:
-        img = np.array(mi.Bitmap(str(p)), dtype=np.float32)
-    except Exception as e:
-        raise InputError(p, f"cannot read HDR ({str(e)[:120]})") from None
-    if img.ndim == 2:
-        img = np.repeat(img[..., None], 3, axis=-1)
-    return img[..., :3]
+from msps_render.io.images import FORMATS, HDR_SUFFIXES
 
 
 @lru_cache(maxsize=4)
@@ -55,13 +21,10 @@ def load_envmap(path: str) -> np.ndarray:
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "environment map not found")
-    suffix = p.suffix.lower()
-    if suffix == ".exr":
-        img = _read_exr(p)
-    elif suffix in (".hdr", ".rgbe", ".pic"):
-        img = _read_hdr(p)
-    else:
-        raise InputError(p, f"unsupported environment map format '{p.suffix}' (use .exr or .hdr)")
+    fmt = FORMATS.get(p.suffix.lower())
+    if fmt is None or not fmt.hdr:
+        raise InputError(p, f"unsupported environment map format '{p.suffix}' (use {' or '.join(HDR_SUFFIXES)})")
+    img = fmt.read(p)
     if img.ndim != 3 or img.shape[0] < 2 or img.shape[1] < 2:
         raise InputError(p, f"environment map has unusable shape {img.shape}")
     bad_nan = int((~np.isfinite(img)).sum())
@@ -135,8 +98,3 @@ def irradiance_on_axis(img: np.ndarray, axis=(0.0, 0.0, 1.0), rotation_deg: floa
     dA = (np.pi / H) * (2 * np.pi / W) * st
     w = cos * dA
     return np.einsum("hw,hwc->c", w, img[..., :3].astype(np.float64))
-
-
-def mean_irradiance_on_axis(img: np.ndarray, axis=(0.0, 0.0, 1.0), rotation_deg: float = 0.0) -> float:
-    """Channel-mean of `irradiance_on_axis` (kept for callers that want one number)."""
-    return float(irradiance_on_axis(img, axis, rotation_deg).mean())

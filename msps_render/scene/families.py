@@ -33,6 +33,9 @@ from typing import Callable
 
 import numpy as np
 
+from msps_render.errors import InputError, closest
+from msps_render.scene.geometry import icosphere, icosphere_sh_basis, sample_blobby_coeffs, vertex_normals
+
 Mesh = tuple[np.ndarray, np.ndarray]
 
 CREASE_ANGLE_DEG = 40.0  # edges whose face normals differ by more than this stay sharp
@@ -42,9 +45,7 @@ TAU = 2.0 * np.pi
 
 # ====================================================================== mesh helpers
 def _sphere(sub: int) -> Mesh:
-    from msps_render.scene.shapes import _icosphere
-
-    return _icosphere(sub)
+    return icosphere(sub)
 
 
 def _face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -52,8 +53,6 @@ def _face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
 
 
 def _vnormals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    from msps_render.scene.shapes import vertex_normals
-
     return vertex_normals(v, f)
 
 
@@ -246,10 +245,8 @@ def _superellipsoid_radius(d: np.ndarray, scale, e_vert: float, e_horiz: float) 
 
 
 def _blob_radius(rng: np.random.Generator, sub: int, lmax: int = 4, amplitude: float = 0.25) -> np.ndarray:
-    from msps_render.scene.shapes import _icosphere_sh_basis, sample_blobby_coeffs
-
     c = np.asarray(sample_blobby_coeffs(rng, lmax, amplitude))
-    r = 1.0 + _icosphere_sh_basis(sub, lmax) @ c
+    r = 1.0 + icosphere_sh_basis(sub, lmax) @ c
     return np.maximum(r, 0.35 + 0.05 * np.tanh(r))
 
 
@@ -646,8 +643,6 @@ def expand_families(names) -> list[str]:
 
 
 def unknown_family_message(name: str) -> str:
-    from msps_render.errors import closest
-
     return (f"unknown shape family '{name}'{closest(name, list(SHAPE_FAMILIES) + [MIXED])} "
             f"(known: {', '.join(SHAPE_FAMILIES)}, or '{MIXED}' for all)")
 
@@ -671,8 +666,6 @@ def _generate(name: str, seed: int) -> Mesh:
 
 def procedural_mesh(name: str, params: dict) -> Mesh:
     """Vertices (float64) and outward-wound faces (int64) of a procedural ShapeSpec (cached, read-only)."""
-    from msps_render.errors import InputError
-
     if name not in SHAPE_FAMILIES:
         raise InputError("shape.name", unknown_family_message(name))
     if "seed" not in params:

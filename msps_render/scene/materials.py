@@ -1,107 +1,130 @@
-"""Analytic material families: sampling parameters and translating to Mitsuba.
+"""Material choice: `sample_materials(rng, n, ...)` draws distinct materials for a scene.
 
-Each family draws its parameters from a range with the `rng` it is given, so a
-material is reproducible from the scene seed.  Measured (MERL) materials live
-in `msps_render.brdf`; this module only forwards them to it.
+A configurable share is measured (`kind="merl"`): the real MERL file when one
+can be found, otherwise the built-in Neural-BRDF fit of the same material,
+named `merl:<name>` or `nbrdf:<name>` so every log, SceneSpec and shard says
+which was used; `generated:<name>` tables only when asked for.  The rest are
+analytic families (`brdf.families.FAMILIES`).  The catalogue, MERL discovery
+and the held-out split are `msps_render.brdf.library`; translation to Mitsuba
+is `msps_render.render.materials`.
 """
 from __future__ import annotations
 
+import logging
+import os
+from pathlib import Path
+
 import numpy as np
 
-from msps_render.errors import InputError, closest
+from msps_render.brdf import nbrdf
+from msps_render.brdf.families import FAMILIES, MEASURED_KIND, unknown_family
+from msps_render.brdf.library import (HOLDOUT, MEASURED, Catalogue, Entry, available_merl, find_merl, held_out,
+                                      load_catalogue, merl_search_dirs)
+from msps_render.errors import InputError
 from msps_render.scene.spec import MaterialSpec
 
-
-def _albedo(rng: np.random.Generator, lo: float = 0.15, hi: float = 0.9) -> tuple[float, float, float]:
-    # Sample a colour as brightness x chroma so dark and saturated albedos both occur.
-    chroma = rng.dirichlet([2.0, 2.0, 2.0]) * 3.0
-    b = rng.uniform(lo, hi)
-    rgb = np.clip(b * (0.5 + 0.5 * chroma / chroma.max()), 0.02, 0.95)
-    return tuple(float(x) for x in rgb)
-
-
-def _diffuse(rng):
-    return {"reflectance": _albedo(rng)}
-
-
-def _plastic(rng):
-    return {"diffuse_reflectance": _albedo(rng, 0.1, 0.8), "int_ior": float(rng.uniform(1.4, 1.7))}
-
-
-def _roughplastic(rng):
-    return {"diffuse_reflectance": _albedo(rng, 0.1, 0.8), "alpha": float(rng.uniform(0.05, 0.4)),
-            "int_ior": float(rng.uniform(1.4, 1.7))}
-
-
-_CONDUCTORS = ("Au", "Ag", "Al", "Cu", "Cr")  # Mitsuba built-in IOR tables
-
-
-def _roughconductor(rng):
-    return {"material": str(rng.choice(_CONDUCTORS)),
-            "alpha": float(rng.uniform(0.08, 0.4))}
-
-
-def _grey(rng):
-    """Grey Lambertian (the control of the unseen-shape tests: a classic PS method's best case)."""
-    g = float(rng.uniform(0.5, 0.8))
-    return {"reflectance": (g, g, g)}
-
-
-def _principled(rng):
-    return {"base_color": _albedo(rng), "roughness": float(rng.uniform(0.2, 0.9)),
-            "metallic": float(rng.choice([0.0, 0.0, rng.uniform(0.0, 1.0)])),
-            "specular": float(rng.uniform(0.2, 0.8))}
-
-
-FAMILIES = {
-    "diffuse": _diffuse,
-    "plastic": _plastic,
-    "roughplastic": _roughplastic,
-    "roughconductor": _roughconductor,
-    "principled": _principled,
-    "grey": _grey,
-}
-KIND = {"grey": "diffuse"}  # families rendered by another family's BSDF
+log = logging.getLogger(__name__)
 
 
 def sample_analytic(family: str, rng: np.random.Generator, name: str | None = None) -> MaterialSpec:
-    if family not in FAMILIES:
-        raise InputError("materials.families", f"unknown material family '{family}'"
-                         f"{closest(family, FAMILIES)}; known: {', '.join(FAMILIES)}")
-    return MaterialSpec(name=name or family, kind=KIND.get(family, family), params=FAMILIES[family](rng))
+    """A material of an analytic family (`brdf.families.FAMILIES`) with parameters drawn from `rng`."""
+    fam = FAMILIES.get(family)
+    if fam is None:
+        raise InputError("materials.families", unknown_family(family))
+    return MaterialSpec(name=name or family, kind=fam.bsdf, params=fam.sample(rng))
 
 
 def lambertian(albedo=(0.8, 0.8, 0.8), name: str = "lambertian") -> MaterialSpec:
     return MaterialSpec(name=name, kind="diffuse", params={"reflectance": tuple(float(a) for a in albedo)})
 
 
-def _rgb(v) -> dict:
-    if isinstance(v, (int, float)):
-        v = (float(v),) * 3
-    return {"type": "rgb", "value": [float(x) for x in v]}
+# ------------------------------------------------------- measured materials
+def measured_pool(cat: Catalogue, measured: str = "auto", merl_dir: str | os.PathLike | None = None
+                  ) -> list[MaterialSpec]:
+    """Every measured material available under `measured`:
+
+    'auto' = per catalogue entry the real MERL file if found, else the built-in
+    Neural-BRDF fit; 'merl' = real files only; 'nbrdf' = built-in fits only;
+    'generated' = the analytic stand-ins (explicit, never a fallback).
+    """
+    if measured not in MEASURED:
+        raise InputError("materials.measured", f"unknown source '{measured}' (known: {', '.join(MEASURED)})")
+    if measured == "generated":
+        return [_measured_spec(e, None) for e in cat.by_source("generated")]
+    dirs = merl_search_dirs(merl_dir)
+    pool = []
+    for e in cat.by_source("merl"):
+        real = find_merl(e.target, dirs) if measured in ("auto", "merl") else None
+        if real is not None:
+            pool.append(_measured_spec(e, real))
+        elif measured in ("auto", "nbrdf") and nbrdf.weights_path(Path(e.target).stem) is not None:
+            stem = Path(e.target).stem
+            pool.append(MaterialSpec(name=f"nbrdf:{e.name}", kind=MEASURED_KIND, params={"table": f"nbrdf:{stem}"}))
+    return pool
 
 
-def to_mitsuba(m: MaterialSpec) -> dict:
-    """Mitsuba `load_dict` description of a material (needs a variant set)."""
-    p = dict(m.params)
-    if m.kind == "merl":
-        from msps_render.brdf.plugin import merl_bsdf_dict
+def _measured_spec(e: Entry, path: Path | None) -> MaterialSpec:
+    if e.source == "merl":
+        return MaterialSpec(name=f"merl:{e.name}", kind=MEASURED_KIND, params={"table": str(path)})
+    params = {"table": f"generated:{e.name}", "model": e.target}
+    for k, v in e.params.items():
+        params[k] = tuple(float(x) for x in v) if isinstance(v, (list, tuple)) else float(v)
+    return MaterialSpec(name=f"generated:{e.name}", kind=MEASURED_KIND, params=params)
 
-        return merl_bsdf_dict(m)
-    if m.kind == "diffuse":
-        return {"type": "diffuse", "reflectance": _rgb(p.get("reflectance", 0.5))}
-    if m.kind == "plastic":
-        return {"type": "plastic", "diffuse_reflectance": _rgb(p.get("diffuse_reflectance", 0.5)),
-                "int_ior": float(p.get("int_ior", 1.49)), "nonlinear": False}
-    if m.kind == "roughplastic":
-        return {"type": "roughplastic", "distribution": "ggx",
-                "diffuse_reflectance": _rgb(p.get("diffuse_reflectance", 0.5)),
-                "alpha": float(p.get("alpha", 0.1)), "int_ior": float(p.get("int_ior", 1.49))}
-    if m.kind == "roughconductor":
-        return {"type": "roughconductor", "distribution": "ggx",
-                "material": str(p.get("material", "Al")), "alpha": float(p.get("alpha", 0.1))}
-    if m.kind == "principled":
-        return {"type": "principled", "base_color": _rgb(p.get("base_color", 0.5)),
-                "roughness": float(p.get("roughness", 0.5)), "metallic": float(p.get("metallic", 0.0)),
-                "specular": float(p.get("specular", 0.5))}
-    raise InputError("material", f"unknown material kind '{m.kind}'")
+
+def _base_name(m: MaterialSpec) -> str:
+    return m.name.split(":", 1)[1] if ":" in m.name else m.name
+
+
+def sample_materials(rng: np.random.Generator, n: int, catalogue: str | os.PathLike | None = None,
+                     merl_fraction: float = 0.5, merl_dir: str | os.PathLike | None = None,
+                     families: list[str] | None = None, require_merl: bool | None = None,
+                     measured: str = "auto", holdout: str = "train",
+                     split_file: str | os.PathLike | None = None) -> list[MaterialSpec]:
+    """Draw `n` distinct materials; each is measured with probability `merl_fraction`.
+
+    Measured materials come from `measured_pool(measured)`, restricted by
+    `holdout` to the training side ('train': held-out materials excluded),
+    the held-out side ('test') or everything ('all'). An empty pool is an
+    InputError, never a silent substitution. `require_merl` (default: true when
+    `merl_dir` or $MSPS_MERL_DIR is set) makes missing real MERL files an error
+    listing every place searched. Analytic ones use `families` (config) or the
+    catalogue's analytic entries. Consumes `rng` in a fixed order.
+    """
+    if n < 1:
+        raise ValueError(f"need at least one material, got n={n}")
+    if not 0.0 <= merl_fraction <= 1.0:
+        raise InputError("materials.merl_fraction", f"must be in [0, 1], got {merl_fraction}")
+    if holdout not in HOLDOUT:
+        raise InputError("materials.holdout", f"unknown value '{holdout}' (known: {', '.join(HOLDOUT)})")
+    cat = load_catalogue(catalogue)
+    if require_merl is None:
+        require_merl = merl_fraction > 0 and bool(merl_dir or os.environ.get("MSPS_MERL_DIR"))
+    pool: list[MaterialSpec] = []
+    if merl_fraction > 0:
+        if require_merl and measured in ("auto", "merl") and not available_merl(cat, merl_dir):
+            where = merl_dir or os.environ.get("MSPS_MERL_DIR")
+            missing = "" if Path(where).is_dir() else " (directory does not exist)"
+            searched = ", ".join(str(d) for d in merl_search_dirs(merl_dir))
+            raise InputError(where, f"no MERL .binary files of the catalogue found{missing}; searched: {searched}")
+        pool = measured_pool(cat, measured, merl_dir)
+        if holdout != "all" and measured != "generated":
+            test = held_out(split_file)
+            pool = [m for m in pool if (_base_name(m) in test) == (holdout == "test")]
+        if not pool:
+            raise InputError(cat.path, f"no measured materials available (measured='{measured}', "
+                                       f"holdout='{holdout}'); add MERL files or the built-in brdf/nbrdf/ weights, "
+                                       "or set materials.merl_fraction = 0")
+    n_measured = min(int(rng.binomial(n, merl_fraction)), len(pool)) if pool else 0
+    measured_mats = [pool[i] for i in rng.choice(len(pool), size=n_measured, replace=False)] if n_measured else []
+    fams = list(families) if families else [e.target for e in cat.by_source("analytic")]
+    k = n - n_measured
+    if k and not fams:
+        raise InputError(cat.path, "no analytic families to draw from (and not enough measured materials)")
+    picks = rng.choice(len(fams), size=k, replace=len(fams) < k) if k else []
+    analytic = [sample_analytic(fams[int(i)], rng) for i in picks]
+    mats = measured_mats + analytic
+    order = rng.permutation(len(mats))
+    out = [mats[int(i)] for i in order]
+    log.info("materials: %s", ", ".join(m.name for m in out))
+    return out

@@ -11,23 +11,25 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
+from msps_render.brdf.families import FAMILIES, unknown_family
+from msps_render.config_io import StrictModel, read_toml, validate
 from msps_render.errors import InputError
 from msps_render.scene import lights as L
 from msps_render.scene import shapes as S
-from msps_render.scene.materials import FAMILIES, sample_analytic
+from msps_render.scene.envmap import envmap_pixels, irradiance_on_axis
+from msps_render.scene.families import expand_families, sample_family_params
+from msps_render.scene.materials import sample_analytic, sample_materials
+from msps_render.scene.primitives import PRIMITIVES, unknown_primitive
 from msps_render.scene.spec import CameraSpec, EnvSpec, IntegratorSpec, SceneSpec, ShapeSpec
 from msps_render.spectral.config import SensorConfig, SpectralConfig
+from msps_render.spectral.crosstalk import effective_crosstalk
 
 
-class _Cfg(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class ShapeConfig(_Cfg):
+class ShapeConfig(StrictModel):
     source: Literal["blobby", "mesh", "sphere", "primitive", "procedural"] = "blobby"
-    primitives: list[str] = Field(default_factory=lambda: ["torus", "capsule", "superellipsoid", "vase"])
+    primitives: list[str] = Field(default_factory=lambda: list(PRIMITIVES))
     families: list[str] = Field(default_factory=lambda: ["mixed"],
                                 description="source='procedural': shape families, one drawn per shape "
                                             "('mixed' = all: detailed, creased, concave, thin, composite)")
@@ -44,11 +46,17 @@ class ShapeConfig(_Cfg):
     n_shapes: int | None = Field(None, ge=1, description="blobby/procedural: draw from a fixed pool of this many shapes")
     pool_seed: int = 0
 
+    @field_validator("primitives")
+    @classmethod
+    def _known_primitives(cls, v):
+        for name in v:
+            if name not in PRIMITIVES:
+                raise ValueError(unknown_primitive(name))
+        return v
+
     @field_validator("families")
     @classmethod
     def _known_families(cls, v):
-        from msps_render.scene.families import expand_families
-
         if not v:
             raise ValueError("families must name at least one shape family")
         expand_families(v)  # raises on unknown names, listing the known ones
@@ -64,7 +72,7 @@ class ShapeConfig(_Cfg):
         return out
 
 
-class MaterialsConfig(_Cfg):
+class MaterialsConfig(StrictModel):
     min_count: int = Field(2, ge=1, le=8)
     max_count: int = Field(3, ge=1, le=8)
     families: list[str] = Field(default_factory=lambda: ["diffuse", "plastic", "roughplastic",
@@ -83,15 +91,13 @@ class MaterialsConfig(_Cfg):
     @field_validator("families")
     @classmethod
     def _known(cls, v):
-        from msps_render.errors import closest
-
         for f in v:
             if f not in FAMILIES:
-                raise ValueError(f"unknown material family '{f}'{closest(f, FAMILIES)}")
+                raise ValueError(unknown_family(f))
         return v
 
 
-class LightsConfig(_Cfg):
+class LightsConfig(StrictModel):
     kind: Literal["directional", "point"] = "directional"
     slant_deg: float = Field(30.0, gt=0.0, lt=90.0)
     tilts_deg: list[float] = Field(default_factory=lambda: [0.0, 120.0, 240.0])
@@ -112,7 +118,7 @@ class LightsConfig(_Cfg):
         return v
 
 
-class EnvironmentConfig(_Cfg):
+class EnvironmentConfig(StrictModel):
     enabled: bool = False
     source: str = "procedural"
     ratio: float = Field(0.1, ge=0.0, description="env irradiance / coloured-light irradiance")
@@ -128,7 +134,7 @@ class EnvironmentConfig(_Cfg):
         return v
 
 
-class SceneConfig(_Cfg):
+class SceneConfig(StrictModel):
     shape: ShapeConfig = ShapeConfig()
     materials: MaterialsConfig = MaterialsConfig()
     lights: LightsConfig = LightsConfig()
@@ -136,7 +142,7 @@ class SceneConfig(_Cfg):
     camera: CameraSpec = CameraSpec()
     integrator: IntegratorSpec = IntegratorSpec()
     # spectral mode / sensor (issue 4): `spectral` is used when mode == "spectral" (defaults if
-    # absent); `sensor` is applied after rendering by `msps_render.spectral.sensor.apply_sensor`.
+    # absent); `sensor` is applied after rendering by `msps_render.render.sensor.apply_sensor`.
     mode: Literal["rgb", "spectral"] = "rgb"
     spectral: SpectralConfig | None = None
     sensor: SensorConfig | None = None
@@ -161,8 +167,6 @@ def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator, frame_index: int |
         return ShapeSpec(kind="primitive", name=name, params=S.sample_primitive_params(name, rng),
                          rotation=rot, radius=cfg.radius)
     if cfg.source == "procedural":
-        from msps_render.scene.families import expand_families, sample_family_params
-
         fams = expand_families(cfg.families)
         sub = rng
         if cfg.n_shapes:  # a fixed pool of procedural shapes (index -> same family and seed)
@@ -184,8 +188,6 @@ def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator, frame_index: int |
 
 def _sample_materials(cfg: MaterialsConfig, n: int, rng: np.random.Generator):
     if cfg.merl_fraction > 0 or cfg.catalogue:
-        from msps_render.brdf.library import sample_materials
-
         return tuple(sample_materials(rng, n, catalogue=cfg.catalogue, merl_fraction=cfg.merl_fraction,
                                       merl_dir=cfg.merl_dir, families=cfg.families, measured=cfg.measured,
                                       holdout=cfg.holdout, split_file=cfg.split_file))
@@ -210,8 +212,6 @@ def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = 
     lc = cfg.lights
     crosstalk, spectra, camera_response = lc.crosstalk, None, None
     if cfg.mode == "spectral":  # effective crosstalk of the light spectra x camera (issue 4)
-        from msps_render.spectral.crosstalk import effective_crosstalk
-
         sc = cfg.spectral or SpectralConfig()
         if len(sc.lights) != len(lc.tilts_deg):
             raise InputError("scene.spectral.lights", f"{len(sc.lights)} light spectra for "
@@ -261,8 +261,6 @@ def environment_for_ratio(cfg: EnvironmentConfig, light_irradiance: float, rng: 
     energy (docs/physics.md).  Spectral mode keeps this meaning (the renderer
     corrects the scale for RGB->spectrum upsampling).
     """
-    from msps_render.scene.envmap import envmap_pixels, irradiance_on_axis
-
     rot = float(rng.uniform(0, 360)) if cfg.random_rotation else 0.0
     seed = int(rng.integers(2**31 - 1))
     img = envmap_pixels(cfg.source, seed)
@@ -273,7 +271,5 @@ def environment_for_ratio(cfg: EnvironmentConfig, light_irradiance: float, rng: 
 
 def load_scene_config(path: str | Path) -> SceneConfig:
     """Read a SceneConfig from TOML: the `[scene]` table if present, else the whole file."""
-    from msps_render.config_io import read_toml, validate
-
     data = read_toml(path)
     return validate(SceneConfig, data.get("scene", data), path)

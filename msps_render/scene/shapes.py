@@ -13,60 +13,21 @@ self-intersect; amplitudes decay with l so it stays smooth.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
 from msps_render.errors import InputError
+from msps_render.scene.families import crease_normals, procedural_mesh
+from msps_render.scene.geometry import (TriMesh, icosphere, icosphere_sh_basis, n_sh_coeffs,  # noqa: F401
+                                        real_sh_basis, sample_blobby_coeffs, vertex_normals)
+from msps_render.scene.primitives import PRIMITIVES, build_primitive, sample_primitive_params  # noqa: F401
 from msps_render.scene.spec import ShapeSpec, SplitSpec
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 
 
-@dataclass(frozen=True)
-class TriMesh:
-    """Plain triangle mesh: float32 vertices/normals (V,3), uint32 faces (F,3)."""
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    normals: np.ndarray
-
-
 # ------------------------------------------------------------ spherical harmonics
-def real_sh_basis(dirs: np.ndarray, lmax: int, lmin: int = 1) -> np.ndarray:
-    """Real spherical harmonics Y_lm(dirs) for lmin <= l <= lmax, shape (N, n_coeffs)."""
-    from scipy.special import sph_harm_y
-
-    x, y, z = dirs[:, 0], dirs[:, 1], dirs[:, 2]
-    theta = np.arccos(np.clip(z, -1, 1))
-    phi = np.arctan2(y, x)
-    cols = []
-    for l in range(lmin, lmax + 1):
-        for m in range(-l, l + 1):
-            Y = sph_harm_y(l, abs(m), theta, phi)
-            if m < 0:
-                cols.append(np.sqrt(2) * (-1) ** m * Y.imag)
-            elif m == 0:
-                cols.append(Y.real)
-            else:
-                cols.append(np.sqrt(2) * (-1) ** m * Y.real)
-    return np.stack(cols, axis=1)
-
-
-def n_sh_coeffs(lmax: int, lmin: int = 1) -> int:
-    return (lmax + 1) ** 2 - lmin ** 2
-
-
-def sample_blobby_coeffs(rng: np.random.Generator, lmax: int = 4, amplitude: float = 0.3) -> tuple[float, ...]:
-    """Random SH coefficients with a 1/l^2 spectrum so the shape stays smooth."""
-    c = []
-    for l in range(1, lmax + 1):
-        c.extend(rng.normal(0.0, amplitude / l ** 1.5, size=2 * l + 1))
-    return tuple(float(v) for v in c)
-
-
 def _lmax_from_count(n: int) -> int:
     lmax = int(round(np.sqrt(n + 1))) - 1
     if n_sh_coeffs(lmax) != n:
@@ -74,82 +35,15 @@ def _lmax_from_count(n: int) -> int:
     return lmax
 
 
-@lru_cache(maxsize=8)
-def _icosphere(subdivisions: int):
-    import trimesh
-
-    m = trimesh.creation.icosphere(subdivisions=subdivisions)
-    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
-
-
-@lru_cache(maxsize=8)
-def _icosphere_sh_basis(subdivisions: int, lmax: int) -> np.ndarray:
-    """SH basis at the icosphere vertices: fixed per level, so computed once per process."""
-    B = real_sh_basis(_icosphere(subdivisions)[0], lmax)
-    B.setflags(write=False)
-    return B
-
-
 def blobby_mesh(coeffs: tuple[float, ...], subdivisions: int = 5) -> tuple[np.ndarray, np.ndarray]:
-    dirs, faces = _icosphere(subdivisions)
+    dirs, faces = icosphere(subdivisions)
     r = np.ones(len(dirs))
     if coeffs:
-        B = _icosphere_sh_basis(subdivisions, _lmax_from_count(len(coeffs)))
+        B = icosphere_sh_basis(subdivisions, _lmax_from_count(len(coeffs)))
         r = r + B @ np.asarray(coeffs)
     # Keep radii positive (star-shaped => no self-intersection) with a soft floor.
     r = np.maximum(r, 0.35 + 0.05 * np.tanh(r))
     return dirs * r[:, None], faces
-
-
-# ------------------------------------------------------------- primitives
-def _torus(p):
-    import trimesh
-
-    m = trimesh.creation.torus(major_radius=1.0, minor_radius=p.get("minor", 0.4), major_sections=96,
-                               minor_sections=48)
-    return np.asarray(m.vertices), np.asarray(m.faces)
-
-
-def _capsule(p):
-    import trimesh
-
-    m = trimesh.creation.capsule(height=p.get("height", 1.0), radius=p.get("radius", 0.5), count=[48, 48])
-    return np.asarray(m.vertices), np.asarray(m.faces)
-
-
-def _superellipsoid(p):
-    """Signed-power map of a sphere: exponent < 1 gives rounded boxes, > 1 pinched shapes."""
-    d, f = _icosphere(5)
-    e = np.array([p.get("ex", 0.6), p.get("ey", 0.6), p.get("ez", 0.6)])
-    scale = np.array([p.get("sx", 1.0), p.get("sy", 0.8), p.get("sz", 0.7)])
-    return np.sign(d) * np.abs(d) ** e * scale, f
-
-
-def _vase(p):
-    """Surface of revolution of a smooth wavy profile (concave regions => cast shadows)."""
-    import trimesh
-
-    z = np.linspace(-1.0, 1.0, 96)
-    r = p.get("base", 0.45) + p.get("wave", 0.18) * np.sin(np.pi * p.get("freq", 1.5) * z + p.get("phase", 0.0))
-    r = r * np.sqrt(np.clip(1 - z ** 2, 0, None)) ** 0.3  # close the ends smoothly
-    r[0] = r[-1] = 0.0
-    m = trimesh.creation.revolve(np.stack([r, z], 1), sections=96)
-    return np.asarray(m.vertices), np.asarray(m.faces)
-
-
-PRIMITIVES = {"torus": _torus, "capsule": _capsule, "superellipsoid": _superellipsoid, "vase": _vase}
-
-
-def sample_primitive_params(name: str, rng: np.random.Generator) -> dict[str, float]:
-    if name == "torus":
-        return {"minor": float(rng.uniform(0.25, 0.5))}
-    if name == "capsule":
-        return {"height": float(rng.uniform(0.5, 1.5)), "radius": float(rng.uniform(0.35, 0.6))}
-    if name == "superellipsoid":
-        return {k: float(rng.uniform(0.4, 1.6)) for k in ("ex", "ey", "ez")} | {
-            k: float(rng.uniform(0.6, 1.0)) for k in ("sx", "sy", "sz")}
-    return {"base": float(rng.uniform(0.35, 0.55)), "wave": float(rng.uniform(0.08, 0.22)),
-            "freq": float(rng.uniform(1.0, 2.5)), "phase": float(rng.uniform(0, 2 * np.pi))}
 
 
 # ----------------------------------------------------------------- user meshes
@@ -216,21 +110,6 @@ def normalise(v: np.ndarray, radius: float = 1.0) -> np.ndarray:
     return v * (radius / max(r, 1e-12))
 
 
-def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Area-weighted smooth vertex normals.
-
-    Always recomputed, also for files that carry normals: formats disagree
-    (STL has none, OBJ normals are often split at UV seams), and the ground
-    truth must describe exactly the surface Mitsuba shades.
-    """
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = 2*area
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    ln = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.where(ln > 0, ln, 1.0)
-
-
 def random_rotation(rng: np.random.Generator) -> tuple:
     """Uniform random rotation matrix (as nested tuples for SceneSpec)."""
     from scipy.spatial.transform import Rotation
@@ -246,10 +125,8 @@ def build_mesh(shape: ShapeSpec) -> TriMesh:
     elif shape.kind == "mesh":
         v, f = load_mesh_file(shape.path)
     elif shape.kind == "primitive":
-        v, f = orient_outward(*PRIMITIVES[shape.name](dict(shape.params)))
+        v, f = orient_outward(*build_primitive(shape.name, dict(shape.params)))
     elif shape.kind == "procedural":
-        from msps_render.scene.families import procedural_mesh
-
         v, f = procedural_mesh(shape.name, dict(shape.params))
     else:
         raise ValueError("the analytic sphere has no mesh; the renderer uses Mitsuba's sphere")
@@ -263,8 +140,6 @@ def build_mesh(shape: ShapeSpec) -> TriMesh:
     R = np.asarray(shape.rotation, dtype=np.float64)
     v = normalise(v, shape.radius) @ R.T
     if shape.kind == "procedural":  # keep creases sharp: split vertices across sharp edges
-        from msps_render.scene.families import crease_normals
-
         v, f, n = crease_normals(v, f)
     else:
         n = vertex_normals(v, f)

@@ -16,16 +16,16 @@ import math
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
+
+from msps_render.brdf.families import MATERIAL_KINDS
+from msps_render.config_io import FrozenModel
+from msps_render.errors import InputError, format_validation_error
+from msps_render.scene.families import SHAPE_FAMILIES, unknown_family_message
+from msps_render.scene.primitives import PRIMITIVES, unknown_primitive
 
 Vec3 = tuple[float, float, float]
 RGB = tuple[float, float, float]
-
-
-class _Strict(BaseModel):
-    """Base: unknown keys are errors, values are immutable once validated."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
 
 def _unit(v: Vec3, what: str) -> Vec3:
@@ -36,7 +36,7 @@ def _unit(v: Vec3, what: str) -> Vec3:
 
 
 # --------------------------------------------------------------------- camera
-class CameraSpec(_Strict):
+class CameraSpec(FrozenModel):
     """Orthographic by default: photometric stereo assumes a distant viewer."""
 
     kind: Literal["orthographic", "perspective"] = "orthographic"
@@ -49,7 +49,7 @@ class CameraSpec(_Strict):
 
 
 # --------------------------------------------------------------------- lights
-class LightSpec(_Strict):
+class LightSpec(FrozenModel):
     """One light. `rgb` is irradiance (directional) or intensity (point) per channel."""
 
     kind: Literal["directional", "point"] = "directional"
@@ -80,7 +80,7 @@ class LightSpec(_Strict):
 
 
 # ---------------------------------------------------------------- environment
-class EnvSpec(_Strict):
+class EnvSpec(FrozenModel):
     """HDR environment light: a file (EXR/HDR) or the procedural sky."""
 
     source: str = "procedural"  # "procedural" or a path to .exr / .hdr
@@ -91,10 +91,10 @@ class EnvSpec(_Strict):
 
 
 # ------------------------------------------------------------------ materials
-MaterialKind = Literal["diffuse", "plastic", "roughplastic", "roughconductor", "principled", "merl"]
+MaterialKind = Literal[MATERIAL_KINDS]  # derived from the family registry (brdf.families)
 
 
-class MaterialSpec(_Strict):
+class MaterialSpec(FrozenModel):
     """A material by kind and parameters; `name` says which library entry it came from."""
 
     name: str
@@ -103,7 +103,7 @@ class MaterialSpec(_Strict):
 
 
 # --------------------------------------------------------------------- shapes
-class ShapeSpec(_Strict):
+class ShapeSpec(FrozenModel):
     """Geometry. `blobby`: radially displaced sphere; `mesh`: a file; `sphere`: analytic;
     `primitive`: a procedural non-blobby shape (torus, capsule, superellipsoid, vase) named by
     `name` with `params`, for test sets of shapes unlike the training blobs; `procedural`: a
@@ -123,14 +123,9 @@ class ShapeSpec(_Strict):
     def _check(self) -> "ShapeSpec":
         if self.kind == "mesh" and not self.path:
             raise ValueError("shape kind 'mesh' needs a path")
-        if self.kind == "primitive":
-            from msps_render.scene.shapes import PRIMITIVES
-
-            if self.name not in PRIMITIVES:
-                raise ValueError(f"unknown primitive '{self.name}' (known: {', '.join(PRIMITIVES)})")
+        if self.kind == "primitive" and self.name not in PRIMITIVES:
+            raise ValueError(unknown_primitive(self.name))
         if self.kind == "procedural":
-            from msps_render.scene.families import SHAPE_FAMILIES, unknown_family_message
-
             if self.name not in SHAPE_FAMILIES:
                 raise ValueError(unknown_family_message(self.name))
             if "seed" not in self.params:
@@ -138,7 +133,7 @@ class ShapeSpec(_Strict):
         return self
 
 
-class SplitSpec(_Strict):
+class SplitSpec(FrozenModel):
     """How the surface is divided into material parts (each its own Mitsuba shape).
 
     `planes`: part = number of planes the face centroid is in front of (mod n);
@@ -153,7 +148,7 @@ class SplitSpec(_Strict):
 
 
 # ------------------------------------------------------------------ integrator
-class IntegratorSpec(_Strict):
+class IntegratorSpec(FrozenModel):
     kind: Literal["path", "direct"] = "path"
     max_depth: int = Field(6, ge=2, le=64)
     spp: int = Field(32, ge=1, le=65536)
@@ -161,7 +156,7 @@ class IntegratorSpec(_Strict):
 
 
 # ---------------------------------------------------------------------- scene
-class SceneSpec(_Strict):
+class SceneSpec(FrozenModel):
     shape: ShapeSpec
     split: SplitSpec = SplitSpec()
     materials: tuple[MaterialSpec, ...]
@@ -194,8 +189,6 @@ class SceneSpec(_Strict):
 
     @classmethod
     def from_json(cls, text: str, source: str = "<string>") -> "SceneSpec":
-        from msps_render.errors import InputError, format_validation_error
-
         try:
             data = json.loads(text)
         except json.JSONDecodeError as e:
@@ -207,8 +200,6 @@ class SceneSpec(_Strict):
 
     @classmethod
     def load(cls, path: str | Path) -> "SceneSpec":
-        from msps_render.errors import InputError
-
         p = Path(path)
         try:
             text = p.read_text()

@@ -1,8 +1,6 @@
-"""Spectral model: light spectra, camera sensitivities, effective crosstalk, spectral
-rendering (Mitsuba `specfilm`) and an optional sensor model.
-
-Importing this package does not import Mitsuba; `render.py` imports it lazily.
-"""
+"""Spectral model (numpy): light spectra, camera sensitivities, effective crosstalk, and the
+spectral and sensor configs.  Rendering with them is `msps_render.render.spectral` and
+`msps_render.render.sensor`."""
 from msps_render.spectral.config import SensorConfig, SpectralConfig
 from msps_render.spectral.crosstalk import effective_crosstalk, response_matrix
 from msps_render.spectral.spectra import (WL_MAX, WL_MIN, camera_sensitivities, known_cameras,

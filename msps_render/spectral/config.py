@@ -6,14 +6,12 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
+
+from msps_render.config_io import StrictModel
 
 
-class _Cfg(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class SpectralConfig(_Cfg):
+class SpectralConfig(StrictModel):
     """Light spectra (one id per light, in tilt order) and the camera.
 
     Ids: see `msps_render.spectral.spectra` (``led:PEAK:FWHM``, ``flat``, ``d65``,
@@ -42,7 +40,7 @@ class SpectralConfig(_Cfg):
         return validate_camera_id(v)
 
 
-class SensorConfig(_Cfg):
+class SensorConfig(StrictModel):
     """Camera sensor: exposure, Poisson-Gaussian noise, saturation, quantisation.
 
     Model (per pixel and channel, x = radiance): s = clip(exposure*x, 0, 1) is the

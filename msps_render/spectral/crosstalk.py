@@ -17,6 +17,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from msps_render.errors import InputError
 from msps_render.spectral.spectra import WL_STEP, camera_sensitivities, light_spectrum
 
 
@@ -55,8 +56,6 @@ def effective_crosstalk(light_ids, camera_id: str) -> np.ndarray:
     R = response_matrix(light_ids, camera_id)
     s = R.sum(axis=0)
     if (s <= 0).any():
-        from msps_render.errors import InputError
-
         k = int(np.argmax(s <= 0))
         raise InputError("spectral.lights", f"light '{list(light_ids)[k]}' gives no signal in camera "
                                             f"'{camera_id}' (spectra do not overlap)")

@@ -7,12 +7,10 @@ from typing import List, Optional
 
 import typer
 
-app = typer.Typer(add_completion=False)
+from msps_render.cli.app import app, clean_errors
 
 
 def _run(fn):
-    from msps_render.cli import clean_errors
-
     return clean_errors(fn)()
 
 

@@ -1,6 +1,7 @@
 """Mitsuba 3 BSDF plugin `merl`: a measured (MERL-format) table evaluated with `dr.gather`.
 
-Registered per Mitsuba variant on first use by `merl_bsdf_dict` (idempotent).
+Registered per Mitsuba variant on first use by `merl_bsdf_dict` (idempotent); the table
+file comes from `brdf.library.resolve_table`.
 Lookup: nearest bin with MERL's reference semantics (square-root theta_h
 bins, linear theta_d / phi_d, phi_d folded by reciprocity), computed from
 s = wi + wo and u = wi - wo so that swapping wi and wo gives bit-identical bins
@@ -26,6 +27,7 @@ import math
 import numpy as np
 
 from msps_render.brdf import merl
+from msps_render.brdf.library import resolve_table
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +46,7 @@ def _load_table(path: str) -> tuple[np.ndarray, float, float]:
 
 
 @functools.lru_cache(maxsize=None)
-def _device_table(path: str, variant: str):
+def device_table(path: str, variant: str):
     """The table as a drjit Float (JIT variants) or numpy array (scalar variants), once per variant.
 
     Read-only and shared by every BSDF instance of the process (the only global state).
@@ -180,7 +182,7 @@ def _plugin_class(variant: str):
         def __init__(self, props: "mi.Properties"):
             mi.BSDF.__init__(self, props)
             self.filename = str(props["filename"])
-            self.table, alpha, weight = _device_table(self.filename, variant)
+            self.table, alpha, weight = device_table(self.filename, variant)
             if "lobe_alpha" in props:
                 alpha = float(props["lobe_alpha"])
             if "lobe_weight" in props:
@@ -282,12 +284,10 @@ _REGISTERED: set[str] = set()
 
 
 def merl_bsdf_dict(m) -> dict:
-    """`mi.load_dict` description of a MaterialSpec of kind 'merl' (registers the plugin)."""
-    from msps_render.brdf.library import resolve_table
-
+    """`mi.load_dict` description of a measured material (kind 'merl'; registers the plugin)."""
     variant = register()
     path = resolve_table(m)
-    _device_table(str(path), variant)  # load (once) here, so a bad file raises InputError, not a Mitsuba error
+    device_table(str(path), variant)  # load (once) here, so a bad file raises InputError, not a Mitsuba error
     d = {"type": PLUGIN_NAME, "filename": str(path)}
     for k in ("lobe_alpha", "lobe_weight"):
         if k in m.params:

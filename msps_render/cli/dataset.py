@@ -1,4 +1,4 @@
-"""Dataset commands: `msps render | verify | inspect | preview` (mounted into the main CLI)."""
+"""Dataset commands: `msps render | verify | inspect | preview`."""
 from __future__ import annotations
 
 import json
@@ -7,13 +7,7 @@ from typing import List, Optional
 
 import typer
 
-app = typer.Typer(add_completion=False)
-
-
-def _clean(fn):
-    from msps_render.cli import clean_errors
-
-    return clean_errors(fn)
+from msps_render.cli.app import app, clean_errors
 
 
 @app.command("render")
@@ -33,7 +27,7 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.run import render_dataset
 
-    @_clean
+    @clean_errors
     def go():
         overrides = list(set_) + ([f"dataset.seed={seed}"] if seed is not None else [])
         cfg = load_config(config, overrides)
@@ -48,9 +42,9 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
 @app.command("verify")
 def verify_cmd(root: Path = typer.Argument(..., help="dataset directory")):
     """Check every shard: complete, checksums, finite, unit normals, consistent masks. Exit 1 if bad."""
-    from msps_render.pipeline.verify import verify_dataset
+    from msps_render.dataset.verify import verify_dataset
 
-    @_clean
+    @clean_errors
     def go():
         bad = verify_dataset(root)
         if bad:
@@ -69,10 +63,10 @@ def inspect_cmd(path: Path = typer.Argument(..., help="dataset directory or shar
     from rich.table import Table
 
     from msps_render.errors import InputError
-    from msps_render.pipeline.manifest import read_manifest
-    from msps_render.shards import shard_summary
+    from msps_render.dataset.manifest import read_manifest
+    from msps_render.dataset import shard_summary
 
-    @_clean
+    @clean_errors
     def go():
         con = Console()
         if path.is_dir():
@@ -114,7 +108,7 @@ def preview_cmd(root: Path = typer.Argument(..., help="dataset directory"),
     from msps_render.pipeline.outdir import check_writable
     from msps_render.pipeline.preview import preview_dataset
 
-    @_clean
+    @clean_errors
     def go():
         if not (root / "dataset.json").is_file():
             raise InputError(root, "no dataset.json here")

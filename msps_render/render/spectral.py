@@ -1,6 +1,6 @@
 """Spectral rendering: SceneSpec (mode "spectral") -> Frame with camera-channel images.
 
-Called by `msps_render.render.render_frame` (which sets a spectral variant).
+Called by `render_frame` (which sets a spectral variant).
 Reuses the RGB scene description and edits it:
 
 * the film becomes a `specfilm` whose three bands are the camera's r, g, b
@@ -27,6 +27,10 @@ from __future__ import annotations
 import numpy as np
 
 from msps_render.frame import Frame
+from msps_render.render.emitters import render_emitters_separately
+from msps_render.render.ground_truth import ground_truth
+from msps_render.render.scene_dict import ENV_KEY, build_scene_dict, light_key
+from msps_render.scene.envmap import envmap_pixels, irradiance_on_axis
 from msps_render.scene.spec import SceneSpec
 from msps_render.spectral.spectra import GRID, WL_STEP, camera_sensitivities, light_spectrum
 
@@ -81,8 +85,6 @@ def env_spectral_factor(mi, spec: SceneSpec, camera_id: str) -> float:
     coloured map; for real maps the error is the nonlinearity of RGB->spectrum
     upsampling across the map's colours, small for sky-like maps).
     """
-    from msps_render.scene.envmap import envmap_pixels, irradiance_on_axis
-
     e = spec.environment
     E = irradiance_on_axis(envmap_pixels(e.source, e.seed), (0.0, 0.0, 1.0), e.rotation_deg)
     if E.max() <= 0:
@@ -123,13 +125,11 @@ def _render_light_in_film(mi, spec: SceneSpec, k: int, E: np.ndarray, S: np.ndar
     a percent).  Transport is linear in the emission at each wavelength, so
     ∫ (E_k T) S_i dλ = ∫ T (E_k S_i) dλ: same expectation, same image.
     """
-    from msps_render.render.render import _light_key, build_scene_dict
-
     l = spec.lights[k]
     sub = spec.model_copy(update={"lights": (l,), "environment": None})
     d = build_scene_dict(sub, mi)
     d["sensor"]["film"] = specfilm(spec, S * E[:, None])
-    d[_light_key(0)]["irradiance" if l.kind == "directional" else "intensity"] = {"type": "uniform", "value": 1.0}
+    d[light_key(0)]["irradiance" if l.kind == "directional" else "intensity"] = {"type": "uniform", "value": 1.0}
     scene = mi.load_dict(d)
     return scene, _render(mi, scene, spec)
 
@@ -139,9 +139,6 @@ def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = F
     """Render a spectral SceneSpec. `emission_in_film=False` renders the literal set-up (lights
     emit their spectra, film bands = camera sensitivities): same expectation, much noisier for
     narrow LEDs; kept for validation (tests compare both)."""
-    from msps_render.render.render import (ENV_KEY, _ground_truth, _light_key, build_scene_dict,
-                                           render_emitters_separately)
-
     camera_id = spec.camera_response or DEFAULT_CAMERA
     S = camera_sensitivities(camera_id).values
     spectra, R = light_responses(mi, spec, camera_id)
@@ -154,29 +151,29 @@ def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = F
                 images.append(None)
                 continue
             scene, img = _render_light_in_film(mi, spec, k, spectra[k], S)
-            gt = gt or _ground_truth(mi, scene, spec)
+            gt = gt or ground_truth(mi, scene, spec)
             images.append(img)
         if spec.environment is not None:
             d = build_scene_dict(spec.model_copy(update={"lights": ()}), mi)
             d["sensor"]["film"] = specfilm(spec, S)
             d[ENV_KEY]["scale"] = float(spec.environment.scale) * env_factor
             scene = mi.load_dict(d)
-            gt = gt or _ground_truth(mi, scene, spec)
+            gt = gt or ground_truth(mi, scene, spec)
             images.append(_render(mi, scene, spec))
         if gt is None:  # no visible light: geometry only
             scene = mi.load_dict(build_scene_dict(spec, mi))
-            gt = _ground_truth(mi, scene, spec)
+            gt = ground_truth(mi, scene, spec)
         zero = np.zeros(gt[0].shape, np.float32)
         images = [zero if im is None else im for im in images]
     else:
         d = build_scene_dict(spec, mi)
         d["sensor"]["film"] = specfilm(spec, S)
         for k, (l, E) in enumerate(zip(spec.lights, spectra)):
-            d[_light_key(k)]["irradiance" if l.kind == "directional" else "intensity"] = _irregular(E)
+            d[light_key(k)]["irradiance" if l.kind == "directional" else "intensity"] = _irregular(E)
         if spec.environment is not None:
             d[ENV_KEY]["scale"] = float(spec.environment.scale) * env_factor
         scene = mi.load_dict(d)
-        gt = _ground_truth(mi, scene, spec)
+        gt = ground_truth(mi, scene, spec)
         images = render_emitters_separately(mi, scene, spec)
     normal, mask, depth, part = gt
 

@@ -1,0 +1,49 @@
+"""The `msps` typer app and its error contract (`clean_errors`), shared by every command group."""
+from __future__ import annotations
+
+import functools
+
+import typer
+
+from msps_render.errors import InputError, Interrupted, WorkerDied
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="Synthetic data for multispectral photometric stereo (Mitsuba 3) and the dual-cue network.")
+
+
+def fail(msg: str, code: int = 1):
+    typer.echo(f"error: {msg}", err=True)
+    raise typer.Exit(code)
+
+
+def _os_error_line(e: OSError) -> str:
+    """'PATH: reason' for an OSError (read-only directory, path is a file, disk full, ...)."""
+    what = e.strerror or (str(e).splitlines()[0] if str(e) else type(e).__name__)
+    if isinstance(e, FileNotFoundError):
+        what = "not found"
+    if e.filename is None:
+        return f"{what} ({type(e).__name__})"
+    target = e.filename if e.filename2 is None else f"{e.filename} -> {e.filename2}"
+    return f"{target}: {what}"
+
+
+def clean_errors(fn):
+    """Decorator: bad input or an unusable path -> one line + exit 1 (no traceback);
+    an interrupted render -> its summary line + exit 128 + signal (130 SIGINT, 143 SIGTERM)."""
+
+    @functools.wraps(fn)
+    def wrapper(*a, **kw):
+        try:
+            return fn(*a, **kw)
+        except (InputError, WorkerDied) as e:
+            fail(str(e))
+        except Interrupted as e:
+            typer.echo(str(e), err=True)
+            raise typer.Exit(e.exit_code)
+        except OSError as e:
+            if e.filename is None and not isinstance(e, (PermissionError, FileNotFoundError, IsADirectoryError,
+                                                         NotADirectoryError, FileExistsError)):
+                raise
+            fail(_os_error_line(e))
+
+    return wrapper

@@ -1,0 +1,129 @@
+"""Read shards: patch arrays, per-frame calibration, whole frames, digests, a summary.
+
+h5py is imported inside the functions so that `import msps_render.dataset` stays light.
+A corrupted or truncated shard raises `InputError` naming the file (see `shard_errors`).
+"""
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from msps_render.dataset import schema as K
+from msps_render.dataset.digest import array_digest
+from msps_render.dataset.schema import Patches, WholeFrame
+from msps_render.errors import InputError, brief
+
+
+@contextlib.contextmanager
+def shard_errors(path: str | Path):
+    """A corrupted or truncated shard (h5py's bare OSError/KeyError) -> InputError naming the file."""
+    try:
+        yield
+    except (OSError, KeyError) as e:
+        raise InputError(path, f"unreadable shard ({brief(str(e))}); run `msps verify` on the dataset "
+                               "and re-render bad shards with `msps render ... --resume`") from None
+
+
+def open_shard(path: str | Path, mode: str = "r"):
+    """An open h5py.File of a shard (the caller closes it)."""
+    import h5py
+
+    return h5py.File(path, mode)
+
+
+def read_patches(h) -> dict[str, np.ndarray]:
+    """{'image', 'normal', 'mask'}: every patch of an open shard, decoded."""
+    return {name: h[key][()] for name, key in K.PATCH_ARRAYS.items()}
+
+
+def read_calibration(h) -> dict[str, np.ndarray]:
+    """{'frame_index' (per patch), 'light_dirs', 'crosstalk' (per frame)} of an open shard."""
+    return {"frame_index": h[K.PATCH_FRAME_INDEX][()], "light_dirs": h[K.FRAME_LIGHT_DIRS][()],
+            "crosstalk": h[K.FRAME_CROSSTALK][()]}
+
+
+def read_shard_patches(path: str | Path) -> dict[str, np.ndarray]:
+    with shard_errors(path), open_shard(path) as h:
+        return read_patches(h)
+
+
+def read_shard_calibration(path: str | Path) -> dict[str, np.ndarray]:
+    with shard_errors(path), open_shard(path) as h:
+        return read_calibration(h)
+
+
+def read_patch_rows(path: str | Path) -> tuple[Patches, np.ndarray]:
+    """(Patches as float32, frame_index): the `patches/*` rows of a shard, as written."""
+    with shard_errors(path), open_shard(path) as h:
+        pat = Patches(h[K.PATCH_IMAGE][()].astype(np.float32), h[K.PATCH_NORMAL][()].astype(np.float32),
+                      h[K.PATCH_MASK][()], h[K.PATCH_YX][()])
+        return pat, h[K.PATCH_FRAME_INDEX][()]
+
+
+def read_frame_table(path: str | Path) -> dict[str, list]:
+    """Per-frame descriptors: slant_deg, materials (';'-joined), object, condition."""
+    with shard_errors(path), open_shard(path) as h:
+        return {"slant_deg": h[K.FRAME_SLANT_DEG][()].tolist(),
+                "materials": h[K.FRAME_MATERIALS].asstr()[()].tolist(),
+                "object": h[K.FRAME_OBJECT].asstr()[()].tolist(),
+                "condition": h[K.FRAME_CONDITION].asstr()[()].tolist()}
+
+
+def read_scene_json(path: str | Path) -> list[str]:
+    """The SceneSpec JSON of every frame of a shard."""
+    with shard_errors(path), open_shard(path) as h:
+        return h[K.FRAME_SCENE_JSON].asstr()[()].tolist()
+
+
+def has_whole_frames(h) -> bool:
+    return K.FRAME_IMAGE in h
+
+
+def read_whole_frame(h, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(image, normal, mask bool) of stored whole frame i of an open shard."""
+    return h[K.FRAME_IMAGE][i], h[K.FRAME_NORMAL][i], h[K.FRAME_MASK][i].astype(bool)
+
+
+def n_whole_frames(h) -> int:
+    return len(h[K.FRAME_IMAGE]) if has_whole_frames(h) else 0
+
+
+def iter_whole_frames(path: str | Path) -> Iterator[WholeFrame]:
+    """The whole frames of a shard written with `store_frames = true`."""
+    path = Path(path)
+    with open_shard(path) as h:
+        if not has_whole_frames(h):
+            raise InputError(path, "shard has no whole frames (render the preset with store_frames = true)")
+        objs = h[K.FRAME_OBJECT].asstr()[()]
+        mats = h[K.FRAME_MATERIALS].asstr()[()]
+        conds = h[K.FRAME_CONDITION].asstr()[()]
+        for i in range(n_whole_frames(h)):
+            image, normal, mask = read_whole_frame(h, i)
+            yield WholeFrame(image, normal, mask, h[K.FRAME_LIGHT_DIRS][i], h[K.FRAME_CROSSTALK][i],
+                             str(objs[i]), str(mats[i]), str(conds[i]), path.name, i)
+
+
+def read_digests(path: str | Path) -> dict[str, str]:
+    """Array checksums of a shard as stored (numeric datasets)."""
+    out = {}
+    with open_shard(path) as h:
+        for g in (K.PATCHES, K.FRAMES):
+            for n, ds in h[g].items():
+                if ds.dtype.kind in "fiub":
+                    out[f"{g}/{n}"] = array_digest(ds[()])
+    return out
+
+
+def shard_summary(path: str | Path) -> dict:
+    """File attributes and {dataset: (shape, dtype, compression)} of a shard."""
+    import h5py
+
+    with open_shard(path) as h:
+        info = {k: (v.item() if hasattr(v, "item") else v) for k, v in h.attrs.items()}
+        info["datasets"] = {}
+        h.visititems(lambda n, o: info["datasets"].__setitem__(n, (o.shape, str(o.dtype), o.compression))
+                     if isinstance(o, h5py.Dataset) else None)
+    return info

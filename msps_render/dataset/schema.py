@@ -1,0 +1,129 @@
+"""The shard schema: every HDF5 key of a shard is spelled here and nowhere else.
+
+A shard (docs/shard-format.md) holds two groups: `patches/*` (one row per
+patch) and `frames/*` (one row per rendered frame), plus file attributes.
+Writers, readers, verification, preview, benchmarks and tests name arrays by
+the constants below.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+FORMAT_VERSION = 1
+COMPRESSIONS = ("lzf", "gzip", "none")
+PATCH_CHUNK = 16  # patches per HDF5 chunk: small enough for cheap random access
+
+PATCHES = "patches"
+FRAMES = "frames"
+
+# patches/*: one row per patch
+PATCH_IMAGE = "patches/image"  # (N, P, P, 3) float16/32 linear radiance
+PATCH_NORMAL = "patches/normal"  # (N, P, P, 3) camera frame
+PATCH_MASK = "patches/mask"  # (N, P, P) uint8
+PATCH_FRAME_INDEX = "patches/frame_index"  # (N,) int32
+PATCH_YX = "patches/yx"  # (N, 2) int32 top-left corner in the frame
+
+# frames/*: one row per frame
+FRAME_LIGHT_DIRS = "frames/light_dirs"  # (F, 3, 3) rows = toward light k
+FRAME_CROSSTALK = "frames/crosstalk"  # (F, 3, 3)
+FRAME_LIGHT_RGB = "frames/light_rgb"  # (F, 3, 3)
+FRAME_SLANT_DEG = "frames/slant_deg"
+FRAME_ENV_RATIO = "frames/env_ratio"
+FRAME_ENV_ROTATION_DEG = "frames/env_rotation_deg"
+FRAME_SPP = "frames/spp"
+FRAME_SEED = "frames/frame_seed"
+FRAME_IMAGE = "frames/image"  # optional whole frames (store_frames = true)
+FRAME_NORMAL = "frames/normal"
+FRAME_MASK = "frames/mask"
+FRAME_SCENE_JSON = "frames/scene_json"  # utf-8 strings
+FRAME_OBJECT = "frames/object"
+FRAME_MATERIALS = "frames/materials"
+FRAME_CONDITION = "frames/condition"
+
+# file attributes
+ATTR_FORMAT_VERSION = "format_version"
+ATTR_N_PATCHES = "n_patches"
+ATTR_N_FRAMES = "n_frames"
+ATTR_PATCH_SIZE = "patch_size"
+ATTR_COMPLETE = "complete"  # set last: a shard without it is partial
+
+PATCH_ARRAYS = {"image": PATCH_IMAGE, "normal": PATCH_NORMAL, "mask": PATCH_MASK}
+STRING_ARRAYS = (FRAME_SCENE_JSON, FRAME_OBJECT, FRAME_MATERIALS, FRAME_CONDITION)
+
+
+def split_key(key: str) -> tuple[str, str]:
+    """'patches/image' -> ('patches', 'image')."""
+    group, name = key.split("/")
+    return group, name
+
+
+@dataclass
+class Patches:
+    """Fixed-size windows of frames (the rows of `patches/*`)."""
+
+    image: np.ndarray  # (N, P, P, 3) float32
+    normal: np.ndarray  # (N, P, P, 3) float32
+    mask: np.ndarray  # (N, P, P) uint8
+    yx: np.ndarray  # (N, 2) int32, top-left corner in the frame
+
+    def __len__(self) -> int:
+        return len(self.yx)
+
+    @classmethod
+    def empty(cls, size: int) -> "Patches":
+        return cls(image=np.zeros((0, size, size, 3), np.float32), normal=np.zeros((0, size, size, 3), np.float32),
+                   mask=np.zeros((0, size, size), np.uint8), yx=np.zeros((0, 2), np.int32))
+
+    @classmethod
+    def concat(cls, parts: list["Patches"], size: int) -> "Patches":
+        if not parts:
+            return cls.empty(size)
+        return cls(image=np.concatenate([p.image for p in parts]), normal=np.concatenate([p.normal for p in parts]),
+                   mask=np.concatenate([p.mask for p in parts]), yx=np.concatenate([p.yx for p in parts]))
+
+
+@dataclass
+class FrameRecord:
+    """What a shard keeps about one rendered frame (whole images optional)."""
+
+    scene_json: str
+    light_dirs: np.ndarray  # (3, 3) rows = toward light k, camera frame
+    crosstalk: np.ndarray  # (3, 3)
+    light_rgb: np.ndarray  # (3, 3) rows = RGB of light k
+    slant_deg: float
+    env_ratio: float
+    env_rotation_deg: float
+    spp: int
+    frame_seed: int
+    object: str
+    materials: str
+    condition: str = ""
+    image: np.ndarray | None = None
+    normal: np.ndarray | None = None
+    mask: np.ndarray | None = None
+
+
+@dataclass
+class ShardContent:
+    patches: Patches
+    frame_index: np.ndarray  # (N,) int32 frame of each patch
+    frames: list[FrameRecord]
+    attrs: dict = field(default_factory=dict)
+
+
+@dataclass
+class WholeFrame:
+    """A whole stored frame with its calibration, for per-object evaluation and prediction."""
+
+    image: np.ndarray
+    normal: np.ndarray
+    mask: np.ndarray
+    light_dirs: np.ndarray
+    crosstalk: np.ndarray
+    object: str
+    materials: str
+    condition: str
+    shard: str
+    index: int

@@ -1,0 +1,105 @@
+"""Write a shard atomically and byte-deterministically.  Format: docs/shard-format.md.
+
+A shard is written under a temporary name in the same directory and renamed
+into place only after its `complete` attribute is set and the file is closed
+and fsynced, so a crash (or a full disk) never leaves a partial shard under a
+final name.  Writing is byte-deterministic: no timestamps (`track_times=False`),
+fixed dataset order and fixed chunking, so the same content gives the same file.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from msps_render.atomic import atomic_write
+from msps_render.dataset import schema as K
+from msps_render.dataset.digest import array_digest, file_digest
+from msps_render.dataset.schema import ShardContent
+
+
+def create_array(group, name: str, data: np.ndarray, compression: str, chunks=None):
+    """One numeric dataset with the shard's filters (fletcher32; lzf/gzip + shuffle)."""
+    kw = {"track_times": False}
+    if compression != "none" and data.ndim >= 1 and data.size > 0:
+        kw.update(compression="gzip" if compression == "gzip" else "lzf", shuffle=True, fletcher32=True,
+                  chunks=chunks or True)
+        if compression == "gzip":
+            kw["compression_opts"] = 4
+    elif data.size > 0 and data.ndim >= 1:
+        kw.update(fletcher32=True, chunks=chunks or True)
+    return group.create_dataset(name, data=data, **kw)
+
+
+def shard_arrays(content: ShardContent, image_dtype: str = "float16", normal_dtype: str = "float16"
+                 ) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
+    """(numeric arrays, string arrays) of a shard, by HDF5 key, in the order they are written."""
+    p = content.patches
+    img = p.image.astype(image_dtype)
+    if image_dtype == "float16" and len(p) and not np.isfinite(img).all():
+        raise ValueError("radiance exceeds float16 range; use image_dtype='float32'")
+    arrays = {
+        K.PATCH_IMAGE: img,
+        K.PATCH_NORMAL: p.normal.astype(normal_dtype),
+        K.PATCH_MASK: p.mask.astype(np.uint8),
+        K.PATCH_FRAME_INDEX: content.frame_index.astype(np.int32),
+        K.PATCH_YX: p.yx.astype(np.int32),
+    }
+    fr = content.frames
+    arrays.update({
+        K.FRAME_LIGHT_DIRS: np.array([f.light_dirs for f in fr], np.float32).reshape(-1, 3, 3),
+        K.FRAME_CROSSTALK: np.array([f.crosstalk for f in fr], np.float32).reshape(-1, 3, 3),
+        K.FRAME_LIGHT_RGB: np.array([f.light_rgb for f in fr], np.float32).reshape(-1, 3, 3),
+        K.FRAME_SLANT_DEG: np.array([f.slant_deg for f in fr], np.float32),
+        K.FRAME_ENV_RATIO: np.array([f.env_ratio for f in fr], np.float32),
+        K.FRAME_ENV_ROTATION_DEG: np.array([f.env_rotation_deg for f in fr], np.float32),
+        K.FRAME_SPP: np.array([f.spp for f in fr], np.int32),
+        K.FRAME_SEED: np.array([f.frame_seed for f in fr], np.int64),
+    })
+    if fr and fr[0].image is not None:
+        arrays[K.FRAME_IMAGE] = np.stack([f.image for f in fr]).astype(np.float32)
+        arrays[K.FRAME_NORMAL] = np.stack([f.normal for f in fr]).astype(np.float32)
+        arrays[K.FRAME_MASK] = np.stack([f.mask for f in fr]).astype(np.uint8)
+    strings = {K.FRAME_SCENE_JSON: [f.scene_json for f in fr], K.FRAME_OBJECT: [f.object for f in fr],
+               K.FRAME_MATERIALS: [f.materials for f in fr], K.FRAME_CONDITION: [f.condition for f in fr]}
+    return arrays, strings
+
+
+def write_shard(path: str | Path, content: ShardContent, compression: str = "lzf",
+                image_dtype: str = "float16", normal_dtype: str = "float16") -> dict:
+    """Write `content` to `path` atomically; returns {'file_sha256', 'arrays': {name: sha256}, ...}."""
+    import h5py
+
+    if compression not in K.COMPRESSIONS:
+        raise ValueError(f"compression must be one of {K.COMPRESSIONS}, got {compression!r}")
+    path = Path(path)
+    p, fr = content.patches, content.frames
+    P = p.image.shape[1] if len(p) else 0
+    arrays, strings = shard_arrays(content, image_dtype, normal_dtype)
+    with atomic_write(path) as tmp:
+        with h5py.File(tmp, "w", track_order=True) as h:
+            for k, v in sorted(content.attrs.items()):
+                h.attrs[k] = v
+            h.attrs[K.ATTR_FORMAT_VERSION] = K.FORMAT_VERSION
+            h.attrs[K.ATTR_N_PATCHES] = len(p)
+            h.attrs[K.ATTR_N_FRAMES] = len(fr)
+            h.attrs[K.ATTR_COMPLETE] = False
+            for key, a in arrays.items():
+                g, n = K.split_key(key)
+                grp = h.require_group(g)
+                chunks = None
+                if g == K.PATCHES and a.ndim >= 1 and len(a):
+                    chunks = (min(K.PATCH_CHUNK, len(a)),) + a.shape[1:]
+                elif g == K.FRAMES and a.ndim >= 3 and len(a):
+                    chunks = (1,) + a.shape[1:]
+                create_array(grp, n, a, compression, chunks)
+            sdt = h5py.string_dtype("utf-8")
+            for key, vals in strings.items():
+                g, n = K.split_key(key)
+                h.require_group(g).create_dataset(n, data=np.array(vals, dtype=object), dtype=sdt,
+                                                  track_times=False)
+            h.attrs[K.ATTR_PATCH_SIZE] = P
+            h.attrs[K.ATTR_COMPLETE] = True  # last: a shard without it is partial
+            h.flush()
+    return {"file_sha256": file_digest(path), "n_patches": int(len(p)), "n_frames": len(fr),
+            "arrays": {k: array_digest(v) for k, v in arrays.items()}}

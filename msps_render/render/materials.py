@@ -1,0 +1,64 @@
+"""MaterialSpec -> Mitsuba BSDF dict, one translator per material kind (`BSDFS`).
+
+Adding a BSDF kind: one function here registered in `BSDFS`; the kind names
+of `MaterialSpec` are these keys (`scene.spec.MATERIAL_KINDS` is checked
+against them in tests).  Measured tables (`merl`) go to the `merl` plugin.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+from msps_render.errors import InputError, closest
+from msps_render.render.merl_bsdf import merl_bsdf_dict
+from msps_render.scene.spec import MaterialSpec
+
+
+def _rgb(v) -> dict:
+    if isinstance(v, (int, float)):
+        v = (float(v),) * 3
+    return {"type": "rgb", "value": [float(x) for x in v]}
+
+
+def _diffuse(p: dict) -> dict:
+    return {"type": "diffuse", "reflectance": _rgb(p.get("reflectance", 0.5))}
+
+
+def _plastic(p: dict) -> dict:
+    return {"type": "plastic", "diffuse_reflectance": _rgb(p.get("diffuse_reflectance", 0.5)),
+            "int_ior": float(p.get("int_ior", 1.49)), "nonlinear": False}
+
+
+def _roughplastic(p: dict) -> dict:
+    return {"type": "roughplastic", "distribution": "ggx",
+            "diffuse_reflectance": _rgb(p.get("diffuse_reflectance", 0.5)),
+            "alpha": float(p.get("alpha", 0.1)), "int_ior": float(p.get("int_ior", 1.49))}
+
+
+def _roughconductor(p: dict) -> dict:
+    return {"type": "roughconductor", "distribution": "ggx",
+            "material": str(p.get("material", "Al")), "alpha": float(p.get("alpha", 0.1))}
+
+
+def _principled(p: dict) -> dict:
+    return {"type": "principled", "base_color": _rgb(p.get("base_color", 0.5)),
+            "roughness": float(p.get("roughness", 0.5)), "metallic": float(p.get("metallic", 0.0)),
+            "specular": float(p.get("specular", 0.5))}
+
+
+BSDFS: dict[str, Callable[[dict], dict]] = {
+    "diffuse": _diffuse,
+    "plastic": _plastic,
+    "roughplastic": _roughplastic,
+    "roughconductor": _roughconductor,
+    "principled": _principled,
+}
+
+
+def to_mitsuba(m: MaterialSpec) -> dict:
+    """Mitsuba `load_dict` description of a material (needs a variant set)."""
+    if m.kind == "merl":
+        return merl_bsdf_dict(m)
+    translate = BSDFS.get(m.kind)
+    if translate is None:
+        raise InputError("material", f"unknown material kind '{m.kind}'{closest(m.kind, BSDFS)}")
+    return translate(dict(m.params))

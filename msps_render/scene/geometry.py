@@ -1,0 +1,80 @@
+"""Mesh basics shared by the shape builders: `TriMesh`, icospheres, real spherical
+harmonics, smooth vertex normals (numpy/trimesh only)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TriMesh:
+    """Plain triangle mesh: float32 vertices/normals (V,3), uint32 faces (F,3)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray
+
+
+def real_sh_basis(dirs: np.ndarray, lmax: int, lmin: int = 1) -> np.ndarray:
+    """Real spherical harmonics Y_lm(dirs) for lmin <= l <= lmax, shape (N, n_coeffs)."""
+    from scipy.special import sph_harm_y
+
+    x, y, z = dirs[:, 0], dirs[:, 1], dirs[:, 2]
+    theta = np.arccos(np.clip(z, -1, 1))
+    phi = np.arctan2(y, x)
+    cols = []
+    for l in range(lmin, lmax + 1):
+        for m in range(-l, l + 1):
+            Y = sph_harm_y(l, abs(m), theta, phi)
+            if m < 0:
+                cols.append(np.sqrt(2) * (-1) ** m * Y.imag)
+            elif m == 0:
+                cols.append(Y.real)
+            else:
+                cols.append(np.sqrt(2) * (-1) ** m * Y.real)
+    return np.stack(cols, axis=1)
+
+
+def n_sh_coeffs(lmax: int, lmin: int = 1) -> int:
+    return (lmax + 1) ** 2 - lmin ** 2
+
+
+def sample_blobby_coeffs(rng: np.random.Generator, lmax: int = 4, amplitude: float = 0.3) -> tuple[float, ...]:
+    """Random SH coefficients with a 1/l^2 spectrum so the shape stays smooth."""
+    c = []
+    for l in range(1, lmax + 1):
+        c.extend(rng.normal(0.0, amplitude / l ** 1.5, size=2 * l + 1))
+    return tuple(float(v) for v in c)
+
+
+@lru_cache(maxsize=8)
+def icosphere(subdivisions: int):
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=subdivisions)
+    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+
+
+@lru_cache(maxsize=8)
+def icosphere_sh_basis(subdivisions: int, lmax: int) -> np.ndarray:
+    """SH basis at the icosphere vertices: fixed per level, so computed once per process."""
+    B = real_sh_basis(icosphere(subdivisions)[0], lmax)
+    B.setflags(write=False)
+    return B
+
+
+def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Area-weighted smooth vertex normals.
+
+    Always recomputed, also for files that carry normals: formats disagree
+    (STL has none, OBJ normals are often split at UV seams), and the ground
+    truth must describe exactly the surface Mitsuba shades.
+    """
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = 2*area
+    n = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(n, f[:, k], fn)
+    ln = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.where(ln > 0, ln, 1.0)

@@ -1,0 +1,17 @@
+"""Helpers for tests and benchmarks (not part of the pipeline): analytic references."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def analytic_sphere_normals(width: int, height: int, extent: float, radius: float):
+    """Analytic normals/mask of an orthographic sphere at the pixel centres (for tests)."""
+    xs = ((np.arange(width) + 0.5) / width * 2 - 1) * extent * (width / height if width > height else 1)
+    ys = (1 - (np.arange(height) + 0.5) / height * 2) * extent
+    X, Y = np.meshgrid(xs, ys)
+    r2 = (X ** 2 + Y ** 2) / radius ** 2
+    mask = r2 < 1
+    Z = np.sqrt(np.clip(1 - r2, 0, None))
+    n = np.stack([X / radius, Y / radius, Z], -1)
+    n[~mask] = 0
+    return n, mask
