@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Sequence
 
 import numpy as np
 import torch
@@ -36,15 +36,21 @@ class PatchDataset(Dataset):
 
     decoded_shards = 8  # LRU size of decoded shards per process (~12 MB each for 8x128^2 frames)
 
-    def __init__(self, root: str | Path, condition: str | None = None, cache: bool = False,
-                 verify: bool = False):
-        self.root = Path(root)
-        if verify:
-            bad = verify_dataset(self.root)
-            if bad:
-                name, probs = sorted(bad.items())[0]
-                raise InputError(self.root / SHARD_DIR / name, f"fails verification: {'; '.join(probs)}")
-        self.shards = _shard_list(self.root, condition)
+    def __init__(self, root: str | Path | Sequence[str | Path], condition: str | None = None,
+                 cache: bool = False, verify: bool = False):
+        """`root`: one dataset directory, or several read as one (e.g. a corpus plus a supplement)."""
+        roots = [Path(root)] if isinstance(root, (str, os.PathLike)) else [Path(r) for r in root]
+        if not roots:
+            raise ValueError("PatchDataset needs at least one dataset directory")
+        self.roots, self.root = roots, roots[0]
+        self.shards = []
+        for r in roots:
+            if verify:
+                bad = verify_dataset(r)
+                if bad:
+                    name, probs = sorted(bad.items())[0]
+                    raise InputError(r / SHARD_DIR / name, f"fails verification: {'; '.join(probs)}")
+            self.shards += _shard_list(r, condition)
         counts = np.array([n for _, n, _ in self.shards], dtype=np.int64)
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
         self._handles: dict[int, object] = {}

@@ -323,3 +323,22 @@ def test_shipped_checkpoint_predicts_a_rendered_object(rgb_variant, tmp_path):
                                       f.normal[f.mask]).mean())
     print(f"shipped model MAE {np.mean(errs):.2f} deg vs Lambertian {np.mean(base):.2f} deg")
     assert np.mean(errs) < 10.0 and np.mean(errs) < 0.7 * np.mean(base)
+
+
+def test_warm_start_from_checkpoint(tiny_dataset, tmp_path):
+    """--init copies the weights (lr 1e-12 keeps them), records the source, refuses another network."""
+    from msps_render.models.train import load_checkpoint, train
+
+    base = ["train.max_steps=3", "train.val_every=3", "train.batch_size=4", "train.val_max_patches=8"]
+    train(load_model_config("cpu", base), tiny_dataset, tiny_dataset, tmp_path / "a", progress=False)
+    frozen = load_model_config("cpu", base + ["train.lr=1e-12", "train.schedule=constant"])
+    train(frozen, tiny_dataset, tiny_dataset, tmp_path / "b", progress=False, init=tmp_path / "a" / "last.pt")
+    a, _, _ = load_checkpoint(tmp_path / "a" / "last.pt")
+    b, _, ck = load_checkpoint(tmp_path / "b" / "last.pt")
+    for (ka, va), (kb, vb) in zip(a.state_dict().items(), b.state_dict().items()):
+        if va.is_floating_point() and "running" not in ka:  # BatchNorm statistics still move
+            assert torch.allclose(va, vb, atol=1e-8), ka
+    assert ck["state"]["init_from"].startswith("last.pt sha1:")
+    other = load_model_config("cpu", base + ["net.branch=4"])
+    with pytest.raises(InputError, match="different network"):
+        train(other, tiny_dataset, tiny_dataset, tmp_path / "c", progress=False, init=tmp_path / "a" / "last.pt")

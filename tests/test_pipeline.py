@@ -223,6 +223,12 @@ def test_dataset_patches_equal_rendered_frame_crops(tmp_path):
     b0 = fast[0]
     for r in range(len(b0["index"])):  # batched fetch equals per-item fetch
         assert torch.equal(b0["image"][r], ds[int(b0["index"][r])]["image"])
+    # several dataset directories read as one: patches of the first, then of the second
+    both = PatchDataset([out, out])
+    assert len(both) == 2 * len(ds)
+    assert torch.equal(both[len(ds) + 3]["image"], ds[3]["image"])
+    with pytest.raises(InputError, match="no dataset.json"):
+        PatchDataset([out, tmp_path])
 
 
 def test_bad_config_inputs(tmp_path):

@@ -16,10 +16,13 @@ def _run(fn):
 
 @app.command("train")
 def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAME.toml) or TOML path"),
-              data: Path = typer.Option(..., help="training dataset directory"),
+              data: List[Path] = typer.Option(..., help="training dataset directory (repeat to train "
+                                              "on several as one)"),
               val: Path = typer.Option(..., help="validation dataset directory"),
               out: Path = typer.Option(..., help="run directory (checkpoints, metrics)"),
               resume: bool = typer.Option(False, help="continue the run in OUT"),
+              init: Optional[Path] = typer.Option(None, help="warm start: weights of this checkpoint "
+                                                  "(same network), fresh optimizer and schedule"),
               set_: List[str] = typer.Option([], "--set", help="override, e.g. train.max_minutes=10"),
               device: str = typer.Option("cpu", help="cpu or cuda"),
               threads: Optional[int] = typer.Option(None, help="torch CPU threads")):
@@ -34,7 +37,7 @@ def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAM
         if threads:
             torch.set_num_threads(threads)
         cfg = load_model_config(config, list(set_))
-        typer.echo(json.dumps(train(cfg, data, val, out, resume=resume, device=device)))
+        typer.echo(json.dumps(train(cfg, data if len(data) > 1 else data[0], val, out, resume=resume, device=device, init=init)))
 
     _run(go)
 

@@ -16,6 +16,7 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -26,16 +27,26 @@ from msps_render.models.net import DualCueNet, count_parameters
 from msps_render.models.presets import ModelConfig
 
 
-def data_hash(root: str | Path) -> str:
-    from msps_render.dataset.manifest import read_manifest
-
-    m = read_manifest(root)
-    if m is None:
-        raise InputError(root, "no dataset.json here (not a dataset directory)")
+def data_hash(root: str | Path | Sequence[str | Path]) -> str:
+    """Identity of the training data (shard checksums), so --resume refuses other data."""
     import hashlib
 
-    return hashlib.sha256(json.dumps({k: v["file_sha256"] for k, v in sorted(m["shards"].items())}).encode()
-                          ).hexdigest()
+    from msps_render.dataset import read_manifest
+
+    roots = [root] if isinstance(root, (str, Path)) else list(root)
+    sums = []
+    for r in roots:
+        m = read_manifest(r)
+        if m is None:
+            raise InputError(r, "no dataset.json here (not a dataset directory)")
+        sums.append({k: v["file_sha256"] for k, v in sorted(m["shards"].items())})
+    return hashlib.sha256(json.dumps(sums[0] if len(sums) == 1 else sums).encode()).hexdigest()
+
+
+def _sha1(path: str | Path) -> str:
+    import hashlib
+
+    return hashlib.sha1(Path(path).read_bytes()).hexdigest()
 
 
 def save_checkpoint(path: Path, model, cfg: ModelConfig, extra: dict) -> Path:
@@ -95,8 +106,14 @@ def lr_factor(cfg: ModelConfig, progress: float) -> float:
     return 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(max(progress, 0.0), 1.0)))
 
 
-def train(cfg: ModelConfig, data: str | Path, val: str | Path, out: str | Path, resume: bool = False,
-          device: str = "cpu", progress: bool = True, verify: bool = True) -> dict:
+def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | Path, out: str | Path, resume: bool = False,
+          device: str = "cpu", progress: bool = True, verify: bool = True,
+          init: str | Path | None = None) -> dict:
+    """Train from scratch, continue a run (`resume`), or warm-start from another run's weights.
+
+    `init` loads only the weights of a checkpoint of the same network (fresh optimizer and
+    schedule): how a longer run or a fine-tune on a new corpus starts from an earlier model.
+    """
     from msps_render.data import PatchDataset, make_loader
 
     out = Path(out)
@@ -104,7 +121,7 @@ def train(cfg: ModelConfig, data: str | Path, val: str | Path, out: str | Path, 
     train_ds = PatchDataset(data, verify=verify)
     val_ds = PatchDataset(val, verify=verify)
     if len(train_ds) == 0 or len(val_ds) == 0:
-        raise InputError(data if len(train_ds) == 0 else val, "dataset has no patches")
+        raise InputError(train_ds.root if len(train_ds) == 0 else val, "dataset has no patches")
     torch.manual_seed(t_cfg.seed)
     model = DualCueNet(cfg.net_config()).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=t_cfg.lr, betas=tuple(t_cfg.betas))
@@ -125,6 +142,12 @@ def train(cfg: ModelConfig, data: str | Path, val: str | Path, out: str | Path, 
         torch.set_rng_state(ck["torch_rng"])
     elif last.is_file():
         raise InputError(out, "already holds a training run; use --resume to continue it")
+    elif init is not None:
+        _, icfg, ick = load_checkpoint(init)
+        if icfg.net != cfg.net:
+            raise InputError(init, f"--init checkpoint has a different network ({icfg.preset}: {icfg.net})")
+        model.load_state_dict(ick["model"])
+        state["init_from"] = f"{Path(init).name} sha1:{_sha1(init)[:12]}"
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=1))
     loader = make_loader(train_ds, t_cfg.batch_size, shuffle=True, seed=t_cfg.seed, drop_last=True,
