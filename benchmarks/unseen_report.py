@@ -24,7 +24,7 @@ import numpy as np
 def _predictors(models: list[str]):
     from msps_render.models.baseline import lambertian_ps
     from msps_render.models.predict import predict_image
-    from msps_render.models.train import load_checkpoint
+    from msps_render.models.checkpoint import load_checkpoint
 
     out = {}
     for spec in models:
@@ -37,7 +37,7 @@ def _predictors(models: list[str]):
 
 def report(data: Path, preds: dict) -> tuple[dict, list]:
     from msps_render.data import iter_frames
-    from msps_render.models.baseline import angular_error_deg
+    from msps_render.models.metrics import angular_error_deg
 
     per_obj = {k: defaultdict(list) for k in preds}
     pooled = {k: [] for k in preds}

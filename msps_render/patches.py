@@ -6,10 +6,14 @@ can always be traced back to its frame.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from msps_render.dataset.schema import Patches
-from msps_render.frame import Frame
+
+if TYPE_CHECKING:  # patchify takes a Frame; window_origins (used by predict) needs nothing of it
+    from msps_render.frame import Frame
 
 
 def window_origins(height: int, width: int, size: int, stride: int) -> np.ndarray:

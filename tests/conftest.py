@@ -24,15 +24,31 @@ def variant_or_skip(name: str) -> str:
     return name
 
 
-@pytest.fixture
-def rgb_variant() -> str:
-    """The fast RGB variant (llvm_ad_rgb), or skip."""
-    return variant_or_skip("llvm_ad_rgb")
+# One fixture per Mitsuba variant the tests use (as mitsuba3's own conftest does): the variant
+# is set for the test, or the test is skipped where it is missing or its LLVM is unusable.
+VARIANT_FIXTURES = {
+    "rgb_variant": "llvm_ad_rgb",
+    "spectral_variant": "llvm_ad_spectral",
+    "scalar_variant": "scalar_rgb",
+}
+
+
+def _variant_fixture(variant: str):
+    def fixture() -> str:
+        return variant_or_skip(variant)
+
+    fixture.__doc__ = f"Mitsuba variant {variant} (set), or skip."
+    return pytest.fixture(fixture)
+
+
+for _name, _variant in VARIANT_FIXTURES.items():
+    globals()[_name] = _variant_fixture(_variant)
 
 
 @pytest.fixture
-def scalar_variant() -> str:
-    return variant_or_skip("scalar_rgb")
+def mitsuba_variant():
+    """`mitsuba_variant(name)` sets variant `name` or skips (for tests parametrized over variants)."""
+    return variant_or_skip
 
 
 @pytest.fixture(autouse=True)

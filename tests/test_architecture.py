@@ -66,3 +66,41 @@ def test_image_formats_registry(tmp_path):
     (tmp_path / "a.png").write_bytes(b"x")
     with pytest.raises(InputError, match=r"unsupported environment map format '\.png' \(use \.exr or \.hdr\)"):
         load_envmap(str(tmp_path / "a.png"))
+
+
+def test_architecture_doc_names_only_what_exists():
+    """docs/architecture.md cites files, functions and registries: each must exist in the code."""
+    import ast
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "docs" / "architecture.md").read_text()
+    defined: set[str] = set()
+    source = ""
+    for py in (root / "msps_render").rglob("*.py"):
+        source += py.read_text()
+        for node in ast.walk(ast.parse(py.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.ClassDef)):
+                defined.add(node.name)
+            elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+                for t in node.targets if isinstance(node, ast.Assign) else [node.target]:
+                    if isinstance(t, ast.Name):
+                        defined.add(t.id)
+    missing = []
+    for code in re.findall(r"`([^`]+)`", text):
+        for path in re.findall(r"msps_render/[\w/]*(?:\.py|/)", code):
+            if not (root / path).exists():
+                missing.append(path)
+        for file in re.findall(r"^(\w+\.py)$", code):
+            if not list((root / "msps_render").rglob(file)):
+                missing.append(file)
+        call = re.match(r"^(?:[\w.]+\.)?(\w+)\(", code)  # `name(...)`, `module.name(...)`
+        if call and call.group(1) not in defined and not re.search(rf"\.{call.group(1)}\(", source):
+            missing.append(call.group(1))  # neither ours nor a library call the code makes
+        if re.fullmatch(r"[A-Z][A-Z_]+|[A-Z][a-z]+[A-Z]\w*", code) and code not in defined and not re.search(rf"\b{code}\b", source):
+            missing.append(code)  # registries, types, environment variables
+        if (re.fullmatch(r"[a-z]+(?:_[a-z0-9]+)+", code) and code not in defined
+                and not re.search(rf"\b{code}\b", source)):
+            missing.append(code)  # bare function names
+    assert not missing, f"docs/architecture.md names what the code does not have: {sorted(set(missing))}"

@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from msps_render.models.baseline import angular_error_deg, lambertian_ps, unshadowed
+from msps_render.models.baseline import lambertian_ps, unshadowed
+from msps_render.models.metrics import angular_error_deg
 from msps_render.scene.lights import PAPER_CROSSTALK, three_lights
 
 

@@ -134,8 +134,8 @@ def test_scene_sampler_uses_the_library(no_merl_env):
     ('[[material]]\nname = "a"\nsource = "analytic:velvet"\n', "unknown family 'velvet'"),
     ('[[material]]\nname = "a"\nsource = "analytic:diffuse"\n[[material]]\nname = "a"\nsource = "analytic:plastic"\n',
      "duplicate material name 'a'"),
-    ('[[material]]\nname = "a"\nsource = "analytic:diffuse"\ncolour = 1\n', "unknown key(s) ['colour']"),
-    ("materials = 3\n", "unknown key(s)"),
+    ('[[material]]\nname = "a"\nsource = "analytic:diffuse"\ncolour = 1\n', "unknown key 'material.0.colour'"),
+    ("materials = 3\n", "unknown key 'materials' (did you mean 'material'?)"),
     ("version = 1\n", "lists no [[material]]"),
     ("[[material]\n", "not valid TOML"),
 ])

@@ -33,14 +33,16 @@ def tables(tmp_path_factory):
     return out
 
 
-def use_variant(name: str) -> None:
-    """Set a variant and register the plugin, or skip (tests/conftest.py's helper)."""
-    from tests.conftest import variant_or_skip
-
-    variant_or_skip(name)
+@pytest.fixture
+def use_variant(mitsuba_variant):
+    """`use_variant(name)`: set a variant (or skip) and register the `merl` plugin for it."""
     from msps_render.render.merl_bsdf import register
 
-    register()
+    def use(name: str) -> None:
+        mitsuba_variant(name)
+        register()
+
+    return use
 
 
 def _bsdf(path: str, **extra):
@@ -73,7 +75,7 @@ def _eval(bsdf, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
     ("shiny", (0.3, 0.3, math.sqrt(1 - 0.18))),
     ("shiny", (0.9, 0.0, math.sqrt(1 - 0.81))),
 ])
-def test_chi2_sampling_matches_pdf(tables, table, wi):
+def test_chi2_sampling_matches_pdf(tables, table, wi, use_variant):
     use_variant("llvm_ad_rgb")
     from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
 
@@ -88,7 +90,7 @@ def test_chi2_sampling_matches_pdf(tables, table, wi):
     assert ok, chi2.messages
 
 
-def test_importance_sampling_beats_cosine_on_shiny_table(tables):
+def test_importance_sampling_beats_cosine_on_shiny_table(tables, use_variant):
     use_variant("llvm_ad_rgb")
     wi = mi.Vector3f(0.5, 0.0, math.sqrt(0.75))
     n = 200_000
@@ -110,7 +112,7 @@ def test_importance_sampling_beats_cosine_on_shiny_table(tables):
 
 
 # --------------------------------------------------------- lookup semantics
-def test_reciprocity_is_exact(tables):
+def test_reciprocity_is_exact(tables, use_variant):
     use_variant("llvm_ad_rgb")
     from msps_render.render.merl_bsdf import merl_index
 
@@ -129,7 +131,7 @@ def test_reciprocity_is_exact(tables):
     np.testing.assert_allclose(_eval(bsdf, wi, wo), _eval(bsdf, wo, wi), rtol=1e-6)
 
 
-def test_plugin_lookup_agrees_with_reference_bins(tables):
+def test_plugin_lookup_agrees_with_reference_bins(tables, use_variant):
     """float32 plugin vs float64 reference lookup: same bin except within float32 rounding of a
     bin boundary (measured: 3 in 100,000)."""
     use_variant("llvm_ad_rgb")
@@ -143,7 +145,7 @@ def test_plugin_lookup_agrees_with_reference_bins(tables):
     assert np.count_nonzero(~same) <= 20, f"{np.count_nonzero(~same)} of {n} differ"
 
 
-def test_scalar_variants_match_llvm(tables):
+def test_scalar_variants_match_llvm(tables, use_variant):
     rng = np.random.default_rng(13)
     wi, wo = _random_dirs(rng, 40), _random_dirs(rng, 40)
     u1, u2 = rng.random(40), rng.random((40, 2))
@@ -167,7 +169,7 @@ def test_scalar_variants_match_llvm(tables):
 
 
 @pytest.mark.parametrize("variant", ["llvm_ad_spectral", "scalar_spectral"])
-def test_spectral_upsampling_matches_srgb_model(tables, variant):
+def test_spectral_upsampling_matches_srgb_model(tables, variant, use_variant):
     use_variant(variant)
     rgb = np.array([0.8, 0.4, 0.1]) / math.pi
     scale = 2 * rgb.max()
@@ -220,7 +222,7 @@ def _interior(res: int, frac: float = 0.9) -> np.ndarray:
 
 @pytest.mark.parametrize("variant", ["llvm_ad_rgb", "llvm_ad_spectral", "scalar_rgb"])
 @pytest.mark.parametrize("light", ["furnace", "directional"])
-def test_lambertian_table_renders_like_diffuse(tables, variant, light):
+def test_lambertian_table_renders_like_diffuse(tables, variant, light, use_variant):
     """White-furnace-style check: a Lambertian table through the plugin == Mitsuba `diffuse`."""
     use_variant(variant)
     res, spp = (32, 64) if not variant.startswith("scalar") else (12, 16)
@@ -239,7 +241,7 @@ def test_lambertian_table_renders_like_diffuse(tables, variant, light):
         assert abs(got[inside].mean() / 0.8 - 1) <= 0.01
 
 
-def test_conductor_table_renders_like_roughconductor(tables):
+def test_conductor_table_renders_like_roughconductor(tables, use_variant):
     """A non-Lambertian table checks frames, bins and sampling end to end: GGX with F = 1 and
     separable Smith G is Mitsuba's roughconductor with material 'none' (measured MRE 0.7%)."""
     use_variant("llvm_ad_rgb")
@@ -258,7 +260,7 @@ def test_conductor_table_renders_like_roughconductor(tables):
 
 
 # --------------------------------------------------------- contract with scene
-def test_material_spec_to_mitsuba_registers_once(tables, monkeypatch, tmp_path):
+def test_material_spec_to_mitsuba_registers_once(tables, monkeypatch, tmp_path, use_variant):
     use_variant("llvm_ad_rgb")
     from msps_render.render import merl_bsdf as plugin
     from msps_render.render.materials import to_mitsuba
@@ -280,7 +282,7 @@ def test_material_spec_to_mitsuba_registers_once(tables, monkeypatch, tmp_path):
     assert plugin.table_memory_bytes() == 17_496_000
 
 
-def test_corrupt_table_fails_before_mitsuba_with_input_error(tmp_path):
+def test_corrupt_table_fails_before_mitsuba_with_input_error(tmp_path, use_variant):
     use_variant("llvm_ad_rgb")
     from msps_render.errors import InputError
     from msps_render.render.materials import to_mitsuba

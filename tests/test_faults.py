@@ -504,7 +504,7 @@ def test_read_only_outputs_are_one_line(cmd, framed, tmp_path):
 
 def test_random_bytes_checkpoint_message_ends_on_a_word(tmp_path):
     torch = pytest.importorskip("torch")
-    from msps_render.models.train import load_checkpoint
+    from msps_render.models.checkpoint import load_checkpoint
 
     ck = tmp_path / "junk.pt"
     ck.write_bytes(np.random.default_rng(1).bytes(4096))

@@ -239,7 +239,7 @@ def _interrupt_after(cfg, data, out, steps):
 
 def test_bad_inputs(tiny_dataset, tmp_path):
     from msps_render.models.predict import predict_main
-    from msps_render.models.train import load_checkpoint, save_checkpoint
+    from msps_render.models.checkpoint import load_checkpoint, save_checkpoint
 
     # checkpoint of another preset
     cfg = load_model_config("cpu")
@@ -273,7 +273,7 @@ def test_bad_inputs(tiny_dataset, tmp_path):
 
 
 def test_predict_and_eval_cli(tiny_dataset, tmp_path):
-    from msps_render.models.train import save_checkpoint
+    from msps_render.models.checkpoint import save_checkpoint
 
     cfg = load_model_config("cpu")
     ck = save_checkpoint(tmp_path / "m.pt", DualCueNet(cfg.net_config()), cfg, {})
@@ -305,9 +305,10 @@ def test_predict_and_eval_cli(tiny_dataset, tmp_path):
 
 def test_shipped_checkpoint_predicts_a_rendered_object(rgb_variant, tmp_path):
     """`msps predict` works out of the box: the shipped cpu model on a fresh paper-like render."""
-    from msps_render.models.baseline import angular_error_deg, lambertian_ps
+    from msps_render.models.baseline import lambertian_ps
+    from msps_render.models.metrics import angular_error_deg
     from msps_render.models.predict import default_checkpoint, predict_image
-    from msps_render.models.train import load_checkpoint
+    from msps_render.models.checkpoint import load_checkpoint
     from msps_render.render import render_frame
     from msps_render.scene.sample import SceneConfig, sample_scene
 

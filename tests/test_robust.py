@@ -20,13 +20,6 @@ from msps_render.scene.spec import CameraSpec, EnvSpec, IntegratorSpec, SceneSpe
 
 
 @pytest.fixture
-def spectral_variant() -> str:
-    from tests.conftest import variant_or_skip
-
-    return variant_or_skip("llvm_ad_spectral")
-
-
-@pytest.fixture
 def plane_obj(tmp_path) -> str:
     """A flat square facing the camera (+z), counter-clockwise seen from the camera."""
     p = tmp_path / "plane.obj"

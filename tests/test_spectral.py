@@ -29,13 +29,6 @@ CAMERA = "Nikon 5100 (NPL)"
 LEDS = ["led:630:20", "led:530:30", "led:465:20"]
 
 
-@pytest.fixture
-def spectral_variant() -> str:
-    from tests.conftest import variant_or_skip
-
-    return variant_or_skip("llvm_ad_spectral")
-
-
 def sphere_spec(lights, mode="rgb", res=64, spp=64, rho=1.0, camera=None):
     return SceneSpec(shape=ShapeSpec(kind="sphere", radius=0.95), materials=(lambertian((rho,) * 3),),
                      lights=tuple(lights), camera=CameraSpec(width=res, height=res),

@@ -14,7 +14,13 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from msps_render.errors import InputError
+from pydantic import Field, field_validator, model_validator
+
+from msps_render.brdf import analytic, nbrdf
+from msps_render.brdf.analytic import MODELS
+from msps_render.brdf.families import FAMILIES
+from msps_render.config_io import StrictModel, read_toml, validate
+from msps_render.errors import InputError, closest
 from msps_render.resources import shipped_dir
 
 REPO_BRDF_DIR = shipped_dir("brdf")
@@ -23,11 +29,6 @@ DEFAULT_SPLIT = REPO_BRDF_DIR / "split.toml"
 SOURCES = ("merl", "generated", "analytic")
 MEASURED = ("auto", "merl", "nbrdf", "generated")  # where measured materials come from
 HOLDOUT = ("train", "test", "all")  # which side of the held-out split a corpus draws from
-
-
-def brdf_root() -> Path:
-    """The material library directory (`brdf/` of the checkout, or $MSPS_BRDF_DIR)."""
-    return Path(os.environ["MSPS_BRDF_DIR"]) if os.environ.get("MSPS_BRDF_DIR") else REPO_BRDF_DIR
 
 
 @dataclass(frozen=True)
@@ -52,8 +53,6 @@ class Catalogue:
         for e in self.entries:
             if e.name == name:
                 return e
-        from msps_render.errors import closest
-
         raise InputError(self.path, f"no material named '{name}'{closest(name, [e.name for e in self.entries])}")
 
 
@@ -65,42 +64,54 @@ def _catalogue_path(catalogue: str | os.PathLike | None) -> Path:
     return DEFAULT_CATALOGUE
 
 
+class CatalogueEntry(StrictModel):
+    """One `[[material]]` table: `source` is "merl:<file>" | "generated:<model>" | "analytic:<family>"."""
+
+    name: str
+    source: str
+    params: dict = Field(default_factory=dict)
+
+    @field_validator("source")
+    @classmethod
+    def _source(cls, v: str) -> str:
+        kind, _, target = v.partition(":")
+        if not target:
+            raise ValueError('needs name = "..." and source = "merl:<file>" | "generated:<model>" | '
+                             '"analytic:<family>"')
+        if kind not in SOURCES:
+            raise ValueError(f"unknown source kind '{kind}' (known: {', '.join(SOURCES)})")
+        if kind == "generated" and target not in MODELS:
+            raise ValueError(f"unknown model '{target}' (known: {', '.join(MODELS)})")
+        if kind == "analytic" and target not in FAMILIES:
+            raise ValueError(f"unknown family '{target}' (known: {', '.join(FAMILIES)})")
+        return v
+
+
+class CatalogueFile(StrictModel):
+    """`brdf/catalogue.toml`, validated like every other config (unknown keys are errors)."""
+
+    version: int = 1
+    material: list[CatalogueEntry] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _check(self) -> "CatalogueFile":
+        if not self.material:
+            raise ValueError("catalogue lists no [[material]]")
+        seen: set[str] = set()
+        for m in self.material:
+            if m.name in seen:
+                raise ValueError(f"duplicate material name '{m.name}'")
+            seen.add(m.name)
+        return self
+
+
 @functools.lru_cache(maxsize=32)
 def _load_catalogue(path: str) -> Catalogue:
-    from msps_render.brdf.analytic import MODELS
-    from msps_render.brdf.families import FAMILIES
-    from msps_render.config_io import read_toml
-
     p = Path(path)
-    data = read_toml(p, "material catalogue")
-    unknown = set(data) - {"version", "material"}
-    if unknown:
-        raise InputError(p, f"unknown key(s) {sorted(unknown)}; expected 'version' and [[material]] tables")
-    entries: list[Entry] = []
-    seen: set[str] = set()
-    for i, m in enumerate(data.get("material", [])):
-        where = f"material #{i + 1}"
-        extra = set(m) - {"name", "source", "params"}
-        if extra:
-            raise InputError(p, f"{where}: unknown key(s) {sorted(extra)}")
-        name, source = m.get("name"), m.get("source")
-        if not isinstance(name, str) or not isinstance(source, str) or ":" not in source:
-            raise InputError(p, f"{where}: needs name = \"...\" and source = \"merl:<file>\" | "
-                                "\"generated:<model>\" | \"analytic:<family>\"")
-        kind, target = source.split(":", 1)
-        if kind not in SOURCES:
-            raise InputError(p, f"{where} ({name}): unknown source kind '{kind}' (known: {', '.join(SOURCES)})")
-        if kind == "generated" and target not in MODELS:
-            raise InputError(p, f"{where} ({name}): unknown model '{target}' (known: {', '.join(MODELS)})")
-        if kind == "analytic" and target not in FAMILIES:
-            raise InputError(p, f"{where} ({name}): unknown family '{target}' (known: {', '.join(FAMILIES)})")
-        if name in seen:
-            raise InputError(p, f"{where}: duplicate material name '{name}'")
-        seen.add(name)
-        entries.append(Entry(name=name, source=kind, target=target, params=dict(m.get("params", {}))))
-    if not entries:
-        raise InputError(p, "catalogue lists no [[material]]")
-    return Catalogue(path=str(p), entries=tuple(entries))
+    cat = validate(CatalogueFile, read_toml(p, "material catalogue"), p)
+    entries = tuple(Entry(name=m.name, source=m.source.split(":", 1)[0], target=m.source.split(":", 1)[1],
+                          params=dict(m.params)) for m in cat.material)
+    return Catalogue(path=str(p), entries=entries)
 
 
 def load_catalogue(catalogue: str | os.PathLike | None = None) -> Catalogue:
@@ -141,8 +152,6 @@ def available_merl(cat: Catalogue, merl_dir: str | os.PathLike | None = None) ->
 
 @functools.lru_cache(maxsize=8)
 def _read_split(path: str) -> frozenset[str]:
-    from msps_render.config_io import read_toml
-
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "held-out material split file not found")
@@ -178,14 +187,10 @@ def resolve_table(m) -> Path:
     params["table"]: an absolute path; "merl:<name>" (searched like the catalogue);
     or "generated:<name>" with "model" and the model's parameters in params.
     """
-    from msps_render.brdf import analytic
-
     table = m.params.get("table")
     if not isinstance(table, str) or not table:
         raise InputError(f"material '{m.name}'", "a 'merl' material needs params.table (path or id)")
     if table.startswith("nbrdf:"):
-        from msps_render.brdf import nbrdf
-
         w = nbrdf.weights_path(table[6:])
         if w is None:
             raise InputError(f"material '{m.name}'", f"no built-in Neural-BRDF weights '{table[6:]}.h5' in "

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from msps_render.atomic import atomic_write
 from msps_render.errors import InputError
 
 RES_THETA_H = 90
@@ -97,11 +98,9 @@ def write_merl(path: str | os.PathLike, rgb: np.ndarray) -> Path:
         raise ValueError(f"MERL table must have shape {(3, *DIMS)}, got {rgb.shape}")
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
+    with atomic_write(p, unique=True) as tmp, open(tmp, "wb") as fh:  # unique: workers may bake at once
         fh.write(np.asarray(DIMS, dtype="<i4").tobytes())
         fh.write((rgb / SCALE[:, None, None, None]).astype("<f8").tobytes())
-    os.replace(tmp, p)
     return p
 
 

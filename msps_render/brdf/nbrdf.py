@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from msps_render.brdf import merl
+from msps_render.brdf.analytic import cache_dir
 from msps_render.errors import InputError
 from msps_render.resources import data_dir
 
@@ -107,8 +108,6 @@ def builtin_names() -> list[str]:
 
 def baked_table(weights: str | os.PathLike, directory: str | os.PathLike | None = None) -> Path:
     """Path of the MERL table baked from `weights`, baking it once (atomic write) if absent."""
-    from msps_render.brdf.analytic import cache_dir
-
     w = read_weights(weights)
     d = Path(directory) if directory is not None else cache_dir()
     path = d / f"nbrdf-{Path(weights).stem}-{w.digest}-v{BAKE_VERSION}.binary"

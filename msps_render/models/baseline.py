@@ -24,13 +24,6 @@ def lambertian_ps(image: np.ndarray, light_dirs: np.ndarray, crosstalk: np.ndarr
     return n.astype(np.float32)
 
 
-def angular_error_deg(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """Per-pixel angle between unit normals, degrees."""
-    p = pred / np.maximum(np.linalg.norm(pred, axis=-1, keepdims=True), 1e-12)
-    g = gt / np.maximum(np.linalg.norm(gt, axis=-1, keepdims=True), 1e-12)
-    return np.degrees(np.arccos(np.clip((p * g).sum(-1), -1.0, 1.0)))
-
-
 def unshadowed(normal: np.ndarray, light_dirs: np.ndarray, mask: np.ndarray, margin: float = 0.02) -> np.ndarray:
     """Pixels lit by every light (n . l_k > margin for all k): where Lambertian PS is exact."""
     d = np.asarray(normal) @ np.asarray(light_dirs).T

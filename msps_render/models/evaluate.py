@@ -17,16 +17,8 @@ import numpy as np
 
 from msps_render.errors import InputError
 from msps_render.dataset import Manifest, load_manifest
-from msps_render.models.baseline import angular_error_deg, lambertian_ps
-
-
-def error_stats(err: np.ndarray) -> dict:
-    err = np.asarray(err, dtype=np.float64)
-    if err.size == 0:
-        return {"n_pixels": 0}
-    return {"mae_deg": float(err.mean()), "median_deg": float(np.median(err)), "max_deg": float(err.max()),
-            "pct_under_10": float((err < 10).mean() * 100), "pct_under_20": float((err < 20).mean() * 100),
-            "pct_under_30": float((err < 30).mean() * 100), "n_pixels": int(err.size)}
+from msps_render.models.baseline import lambertian_ps
+from msps_render.models.metrics import angular_error_deg, error_stats
 
 
 def _ssim_masked(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
@@ -44,7 +36,7 @@ class _Predictor:
         self.method = method
         self.model = None
         if method == "net":
-            from msps_render.models.train import load_checkpoint
+            from msps_render.models.checkpoint import load_checkpoint
 
             self.model, self.cfg, _ = load_checkpoint(checkpoint)
 

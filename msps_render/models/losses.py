@@ -2,13 +2,16 @@
 
 SCN:  L = 0.1 * L_grad + 0.9 * L_cont,  L_cont = ||n_c - n||^2,
       L_grad = ||grad(n_c) - grad(n)||^2 with grad = sqrt(dx^2 + dy^2) per component.
-PCN:  L = 0.84 * (1 - SSIM(n_est, n)) + 0.16 * MAE,  MAE = mean arccos(n_est . n) (radians).
+PCN:  L = 0.84 * (1 - SSIM(n_est, n)) + 0.16 * MAE,  MAE = mean angle (radians;
+      `metrics.angular_error`, atan2(|a x b|, a . b)).
 SSIM is kornia's (11x11 Gaussian window), computed on (n + 1) / 2 in [0, 1],
 averaged over object pixels only.
 """
 from __future__ import annotations
 
 import torch
+
+from msps_render.models.metrics import angular_error
 
 
 def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -38,19 +41,6 @@ def gradient_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> t
 
 def scn_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return 0.1 * gradient_loss(pred, gt, mask) + 0.9 * content_loss(pred, gt, mask)
-
-
-def angular_error(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """Per-pixel angle (radians), (B, 1, H, W), as atan2(|a x b|, a . b).
-
-    Why not acos(a . b): its gradient is infinite at 0 error, and clamping the
-    cosine away from 1 in float32 biases every correct pixel by ~0.08 deg.
-    """
-    a = torch.nn.functional.normalize(pred, dim=1)
-    b = torch.nn.functional.normalize(gt, dim=1)
-    cross = torch.linalg.cross(a, b, dim=1)
-    sin = torch.sqrt((cross ** 2).sum(1, keepdim=True) + 1e-12)
-    return torch.atan2(sin, (a * b).sum(1, keepdim=True))
 
 
 def mae_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

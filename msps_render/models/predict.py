@@ -12,7 +12,13 @@ from pathlib import Path
 
 import numpy as np
 
+from msps_render.calibration import PAPER_CROSSTALK, direction_from_slant_tilt
 from msps_render.errors import InputError
+from msps_render.io.images import read_image, write_png
+from msps_render.models.baseline import lambertian_ps
+from msps_render.patches import window_origins
+from msps_render.preview import normal_to_rgb8
+from msps_render.resources import data_dir
 
 
 def _window(size: int) -> np.ndarray:
@@ -24,8 +30,6 @@ def predict_image(model, image: np.ndarray, mask: np.ndarray, tile: int = 40, st
                   batch: int = 64) -> np.ndarray:
     """Normals (H, W, 3) of an image (H, W, 3) with a dual-cue model; 0 outside the mask."""
     import torch
-
-    from msps_render.patches import window_origins
 
     H, W = mask.shape
     if H < tile or W < tile:
@@ -55,8 +59,6 @@ def predict_image(model, image: np.ndarray, mask: np.ndarray, tile: int = 40, st
 
 def load_calibration(path: str | Path | None, light_dirs: str | None, crosstalk: str | None):
     """Light directions (3x3, rows toward the lights) and crosstalk (3x3) from a JSON file or flags."""
-    from msps_render.calibration import PAPER_CROSSTALK, direction_from_slant_tilt
-
     L = np.array([direction_from_slant_tilt(30.0, t) for t in (0, 120, 240)])
     M = PAPER_CROSSTALK.copy()
     if path:
@@ -81,7 +83,6 @@ def load_calibration(path: str | Path | None, light_dirs: str | None, crosstalk:
 
 
 def read_inputs(image_path: str | Path, mask_path: str | Path | None) -> tuple[np.ndarray, np.ndarray]:
-    from msps_render.io.images import read_image
 
     img = read_image(image_path)
     if img.shape[-1] != 3:
@@ -99,17 +100,12 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
                  method: str = "net", mask: str | Path | None = None, calibration: str | Path | None = None,
                  light_dirs: str | None = None, crosstalk: str | None = None) -> list[Path]:
     """Write OUT.npy (H, W, 3 normals) and OUT.png (visualisation)."""
-    from msps_render.io.images import write_png
-    from msps_render.preview import normal_to_rgb8
-
     img, mk = read_inputs(image, mask)
     if method == "lambertian":
-        from msps_render.models.baseline import lambertian_ps
-
         L, M = load_calibration(calibration, light_dirs, crosstalk)
         n = lambertian_ps(img, L, M, mk)
     else:
-        from msps_render.models.train import load_checkpoint
+        from msps_render.models.checkpoint import load_checkpoint
 
         ck = checkpoint or default_checkpoint()
         model, _, _ = load_checkpoint(ck)
@@ -126,8 +122,6 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
 
 def default_checkpoint() -> Path:
     """The small checkpoint shipped in models/ (trained by docs/reproducing.md)."""
-    from msps_render.resources import data_dir
-
     p = data_dir("models") / "dualcue-cpu.pt"
     if not p.is_file():
         raise InputError(p, "no shipped checkpoint; pass --checkpoint")

@@ -1,4 +1,4 @@
-"""Training loop: joint SCN+PCN training with Adam, checkpoints, resume, metrics log and plot.
+"""Training: joint SCN+PCN training with Adam, checkpoints, resume, metrics log and plot.
 
 Joint (end-to-end) training is the default: the total loss is L_scn on the
 coarse normal plus L_pcn on the final normal, so the SCN learns structure while
@@ -6,33 +6,36 @@ the PCN learns to correct it per pixel. (Staged SCN->PCN training is the same
 loop run twice with `net.mode = "scn"` then `"dual"`; joint was simpler and
 reached lower validation error at equal time in our runs: docs/reproducing.md.)
 
-Checkpoints are plain dicts of tensors and primitives, loadable with
-`torch.load(weights_only=True)`; `last.pt` holds everything needed to resume
-the same schedule (optimizer, scheduler, step, epoch, position, RNG state).
+`train()` composes small steps, PS-FCN style: open the data, build the model,
+start or restore the run (`start_run`), then per batch `set_lr` + `train_step`,
+and every `val_every` steps `validate` + `record` (metrics line, best/last
+checkpoints).  Checkpoints are `models.checkpoint`; `last.pt` holds everything
+needed to resume the same schedule (optimizer, step, epoch, position, RNG state).
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import torch
 
-from msps_render.errors import InputError, brief
-from msps_render.models.losses import angular_error, total_loss
+from msps_render.dataset import read_manifest
+from msps_render.errors import InputError
+from msps_render.models.checkpoint import load_checkpoint, save_checkpoint
+from msps_render.models.losses import total_loss
+from msps_render.models.metrics import angular_error
 from msps_render.models.net import DualCueNet, count_parameters
 from msps_render.models.presets import ModelConfig
 
 
 def data_hash(root: str | Path | Sequence[str | Path]) -> str:
     """Identity of the training data (shard checksums), so --resume refuses other data."""
-    import hashlib
-
-    from msps_render.dataset import read_manifest
-
     roots = [root] if isinstance(root, (str, Path)) else list(root)
     sums = []
     for r in roots:
@@ -44,41 +47,7 @@ def data_hash(root: str | Path | Sequence[str | Path]) -> str:
 
 
 def _sha1(path: str | Path) -> str:
-    import hashlib
-
     return hashlib.sha1(Path(path).read_bytes()).hexdigest()
-
-
-def save_checkpoint(path: Path, model, cfg: ModelConfig, extra: dict) -> Path:
-    ck = {"model": model.state_dict(), "config": cfg.model_dump(mode="json"), "preset": cfg.preset,
-          "format": "msps-dualcue-1", **extra}
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(ck, tmp)
-    tmp.replace(path)
-    return path
-
-
-def load_checkpoint(path: str | Path, expect_preset: str | None = None, map_location: str = "cpu"):
-    """(model in eval mode, ModelConfig, checkpoint dict). Clear errors for foreign files."""
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "checkpoint not found")
-    try:
-        ck = torch.load(p, map_location=map_location, weights_only=True)
-    except Exception as e:
-        raise InputError(p, f"not a loadable checkpoint ({brief(str(e), 100)})") from None
-    if not isinstance(ck, dict) or ck.get("format") != "msps-dualcue-1":
-        raise InputError(p, "not an msps dual-cue checkpoint")
-    cfg = ModelConfig.model_validate(ck["config"])
-    if expect_preset and cfg.preset != expect_preset:
-        raise InputError(p, f"checkpoint is for preset '{cfg.preset}', expected '{expect_preset}'")
-    model = DualCueNet(cfg.net_config())
-    try:
-        model.load_state_dict(ck["model"])
-    except RuntimeError as e:
-        raise InputError(p, f"weights do not fit the '{cfg.preset}' network ({brief(str(e), 100)})") from None
-    model.eval()
-    return model, cfg, ck
 
 
 @torch.no_grad()
@@ -106,8 +75,103 @@ def lr_factor(cfg: ModelConfig, progress: float) -> float:
     return 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(max(progress, 0.0), 1.0)))
 
 
-def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | Path, out: str | Path, resume: bool = False,
-          device: str = "cpu", progress: bool = True, verify: bool = True,
+@dataclass
+class Run:
+    """One training run: the model, its optimizer and the schedule state that `last.pt` keeps."""
+
+    cfg: ModelConfig
+    out: Path
+    model: torch.nn.Module
+    opt: torch.optim.Optimizer
+    dhash: str
+    state: dict = field(default_factory=lambda: {"step": 0, "epoch": 0, "batch_in_epoch": 0, "elapsed": 0.0,
+                                                 "best_val": float("inf")})
+    n_params: int = 0
+    t_start: float = 0.0
+    budget: float = float("inf")
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.t_start
+
+    def progress(self) -> float:
+        """Share of the step budget, or of the time budget when that is nearer."""
+        return max(self.state["step"] / self.cfg.train.max_steps, self.elapsed() / self.budget)
+
+    def should_stop(self) -> bool:
+        return self.state["step"] >= self.cfg.train.max_steps or self.elapsed() >= self.budget
+
+    def checkpoint(self, name: str, val_mae: float | None = None) -> Path:
+        self.state["elapsed"] = self.elapsed()
+        return save_checkpoint(self.out / name, self.model, self.cfg, {
+            "optimizer": self.opt.state_dict(), "state": dict(self.state),
+            "torch_rng": torch.get_rng_state(), "data_hash": self.dhash, "n_params": self.n_params,
+            "val_mae_deg": val_mae})
+
+
+def build_model(cfg: ModelConfig, device: str) -> tuple[torch.nn.Module, torch.optim.Optimizer]:
+    """The network (seeded by `train.seed`) and its Adam optimizer."""
+    torch.manual_seed(cfg.train.seed)
+    model = DualCueNet(cfg.net_config()).to(device)
+    return model, torch.optim.Adam(model.parameters(), lr=cfg.train.lr, betas=tuple(cfg.train.betas))
+
+
+def start_run(run: Run, resume: bool, init: str | Path | None) -> None:
+    """Restore `last.pt` (`resume`), refuse to overwrite a run, or warm-start weights from `init`."""
+    last = run.out / "last.pt"
+    if resume:
+        if not last.is_file():
+            raise InputError(last, "nothing to resume (no last.pt)")
+        _, rcfg, ck = load_checkpoint(last)
+        if rcfg.model_dump() != run.cfg.model_dump():
+            raise InputError(last, "checkpoint was trained with a different model config")
+        if ck.get("data_hash") != run.dhash:
+            raise InputError(last, "checkpoint was trained on a different dataset")
+        run.model.load_state_dict(ck["model"])
+        run.opt.load_state_dict(ck["optimizer"])
+        run.state.update(ck["state"])
+        torch.set_rng_state(ck["torch_rng"])
+    elif last.is_file():
+        raise InputError(run.out, "already holds a training run; use --resume to continue it")
+    elif init is not None:
+        _, icfg, ick = load_checkpoint(init)
+        if icfg.net != run.cfg.net:
+            raise InputError(init, f"--init checkpoint has a different network ({icfg.preset}: {icfg.net})")
+        run.model.load_state_dict(ick["model"])
+        run.state["init_from"] = f"{Path(init).name} sha1:{_sha1(init)[:12]}"
+
+
+def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
+    for g in opt.param_groups:
+        g["lr"] = lr
+
+
+def train_step(run: Run, batch: dict, device: str) -> tuple[torch.Tensor, dict]:
+    """One optimizer step on one batch: (loss, loss parts)."""
+    x, n, m = batch["image"].to(device), batch["normal"].to(device), batch["mask"].to(device)
+    final, coarse = run.model(x, m)
+    loss, parts = total_loss(final, coarse, n, m, run.cfg.net.mode)
+    run.opt.zero_grad(set_to_none=True)
+    loss.backward()
+    run.opt.step()
+    return loss, parts
+
+
+def record(run: Run, log, val_mae: float, losses: list[float], parts: dict, lr: float, rate: float) -> None:
+    """One metrics line; `best.pt` when validation improved; `last.pt` always."""
+    s = run.state
+    rec = {"step": s["step"], "epoch": s["epoch"], "loss": float(np.mean(losses)),
+           **{f"loss_{k}": val for k, val in parts.items()}, "lr": lr,
+           "val_mae_deg": val_mae, "patches_per_s": rate, "elapsed_s": run.elapsed()}
+    log.write(json.dumps(rec) + "\n")
+    log.flush()
+    if val_mae < s["best_val"]:
+        s["best_val"] = val_mae
+        run.checkpoint("best.pt", val_mae)
+    run.checkpoint("last.pt", val_mae)
+
+
+def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | Path, out: str | Path,
+          resume: bool = False, device: str = "cpu", progress: bool = True, verify: bool = True,
           init: str | Path | None = None) -> dict:
     """Train from scratch, continue a run (`resume`), or warm-start from another run's weights.
 
@@ -122,54 +186,25 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
     val_ds = PatchDataset(val, verify=verify)
     if len(train_ds) == 0 or len(val_ds) == 0:
         raise InputError(train_ds.root if len(train_ds) == 0 else val, "dataset has no patches")
-    torch.manual_seed(t_cfg.seed)
-    model = DualCueNet(cfg.net_config()).to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=t_cfg.lr, betas=tuple(t_cfg.betas))
-    state = {"step": 0, "epoch": 0, "batch_in_epoch": 0, "elapsed": 0.0, "best_val": float("inf")}
-    dhash = data_hash(data)
-    last = out / "last.pt"
-    if resume:
-        if not last.is_file():
-            raise InputError(last, "nothing to resume (no last.pt)")
-        _, rcfg, ck = load_checkpoint(last)
-        if rcfg.model_dump() != cfg.model_dump():
-            raise InputError(last, "checkpoint was trained with a different model config")
-        if ck.get("data_hash") != dhash:
-            raise InputError(last, "checkpoint was trained on a different dataset")
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        state.update(ck["state"])
-        torch.set_rng_state(ck["torch_rng"])
-    elif last.is_file():
-        raise InputError(out, "already holds a training run; use --resume to continue it")
-    elif init is not None:
-        _, icfg, ick = load_checkpoint(init)
-        if icfg.net != cfg.net:
-            raise InputError(init, f"--init checkpoint has a different network ({icfg.preset}: {icfg.net})")
-        model.load_state_dict(ick["model"])
-        state["init_from"] = f"{Path(init).name} sha1:{_sha1(init)[:12]}"
+    model, opt = build_model(cfg, device)
+    run = Run(cfg, out, model, opt, data_hash(data))
+    start_run(run, resume, init)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=1))
     loader = make_loader(train_ds, t_cfg.batch_size, shuffle=True, seed=t_cfg.seed, drop_last=True,
                          num_workers=t_cfg.num_workers)
     val_loader = make_loader(val_ds, 64, shuffle=True, seed=1234)
     log = open(out / "metrics.jsonl", "a")
-    n_params = count_parameters(model)
-    t_start = time.perf_counter() - state["elapsed"]
-    budget = t_cfg.max_minutes * 60 if t_cfg.max_minutes else float("inf")
+    run.n_params = count_parameters(model)
+    run.t_start = time.perf_counter() - run.state["elapsed"]
+    run.budget = t_cfg.max_minutes * 60 if t_cfg.max_minutes else float("inf")
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=t_cfg.max_steps, initial=state["step"], unit="step", dynamic_ncols=True)
+        bar = tqdm(total=t_cfg.max_steps, initial=run.state["step"], unit="step", dynamic_ncols=True)
 
-    def checkpoint(name: str, val_mae: float | None = None):
-        state["elapsed"] = time.perf_counter() - t_start
-        save_checkpoint(out / name, model, cfg, {
-            "optimizer": opt.state_dict(), "state": dict(state),
-            "torch_rng": torch.get_rng_state(), "data_hash": dhash, "n_params": n_params,
-            "val_mae_deg": val_mae})
-
+    state = run.state
     model.train()
     done = False
     window_t, window_n, run_loss = time.perf_counter(), 0, []
@@ -178,38 +213,20 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
         for i, b in enumerate(loader):
             if i < state["batch_in_epoch"]:  # resume mid-epoch on the same deterministic order
                 continue
-            x, n, m = b["image"].to(device), b["normal"].to(device), b["mask"].to(device)
-            # progress = share of the step budget, or of the time budget when that is nearer
-            progress = max(state["step"] / t_cfg.max_steps, (time.perf_counter() - t_start) / budget)
-            lr = t_cfg.lr * lr_factor(cfg, progress)
-            for g in opt.param_groups:
-                g["lr"] = lr
-            final, coarse = model(x, m)
-            loss, parts = total_loss(final, coarse, n, m, cfg.net.mode)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
+            lr = t_cfg.lr * lr_factor(cfg, run.progress())
+            set_lr(opt, lr)
+            loss, parts = train_step(run, b, device)
             state["step"] += 1
             state["batch_in_epoch"] = i + 1
-            window_n += len(x)
+            window_n += len(b["image"])
             run_loss.append(float(loss.detach()))
             if bar:
                 bar.update(1)
                 bar.set_postfix(loss=f"{np.mean(run_loss[-50:]):.4f}", epoch=state["epoch"])
-            stop = state["step"] >= t_cfg.max_steps or time.perf_counter() - t_start >= budget
+            stop = run.should_stop()
             if state["step"] % t_cfg.val_every == 0 or stop:
                 v = validate(model, val_loader, t_cfg.val_max_patches)
-                rate = window_n / (time.perf_counter() - window_t)
-                rec = {"step": state["step"], "epoch": state["epoch"], "loss": float(np.mean(run_loss)),
-                       **{f"loss_{k}": val for k, val in parts.items()}, "lr": lr,
-                       "val_mae_deg": v, "patches_per_s": rate,
-                       "elapsed_s": time.perf_counter() - t_start}
-                log.write(json.dumps(rec) + "\n")
-                log.flush()
-                if v < state["best_val"]:
-                    state["best_val"] = v
-                    checkpoint("best.pt", v)
-                checkpoint("last.pt", v)
+                record(run, log, v, run_loss, parts, lr, window_n / (time.perf_counter() - window_t))
                 window_t, window_n, run_loss = time.perf_counter(), 0, []
             if stop:
                 done = True
@@ -217,13 +234,13 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
         if not done:
             state["epoch"] += 1
             state["batch_in_epoch"] = 0
-    checkpoint("last.pt")
+    run.checkpoint("last.pt")
     log.close()
     if bar:
         bar.close()
     plot_metrics(out / "metrics.jsonl", out / "metrics.png")
     return {"steps": state["step"], "epochs": state["epoch"], "best_val_mae_deg": state["best_val"],
-            "elapsed_s": time.perf_counter() - t_start, "n_params": n_params}
+            "elapsed_s": run.elapsed(), "n_params": run.n_params}
 
 
 def plot_metrics(jsonl: Path, png: Path) -> Path | None:
@@ -245,12 +262,3 @@ def plot_metrics(jsonl: Path, png: Path) -> Path | None:
     fig.savefig(png, dpi=90)
     plt.close(fig)
     return png
-
-
-def export_checkpoint(src: str | Path, dst: str | Path, **info) -> Path:
-    """A slim copy for shipping: weights, config and provenance, without optimizer/RNG state."""
-    _, cfg, ck = load_checkpoint(src)
-    keep = {k: ck[k] for k in ("data_hash", "n_params", "val_mae_deg", "state") if k in ck}
-    model = DualCueNet(cfg.net_config())
-    model.load_state_dict(ck["model"])
-    return save_checkpoint(Path(dst), model, cfg, {**keep, **info})

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
+from msps_render.atomic import atomic_write
 from msps_render.dataset import SHARD_DIR, open_shard, read_frame_table, read_manifest
 from msps_render.dataset.reader import n_whole_frames, read_whole_frame
 from msps_render.dataset.schema import PATCH_IMAGE, PATCH_MASK, PATCH_NORMAL
@@ -79,8 +80,7 @@ def preview_dataset(root: str | Path, out: str | Path, n: int = 8, seed: int = 0
                  + (f", conditions: {', '.join(sorted(set(conds)))}" if any(conds) else ""))
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.stem}.tmp.png")
-    fig.savefig(tmp, dpi=80)
+    with atomic_write(out) as tmp:
+        fig.savefig(tmp, dpi=80, format="png")
     plt.close(fig)
-    tmp.replace(out)
     return out

@@ -1,0 +1,50 @@
+"""Checkpoints: plain dicts of tensors and primitives, loadable with `torch.load(weights_only=True)`.
+
+Every checkpoint holds the weights, the model config and preset, and `format`;
+a run's `last.pt` adds what resuming needs (optimizer, scheduler state, step,
+epoch, position, RNG state) and provenance (data hash, validation error).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from msps_render.atomic import atomic_write
+from msps_render.errors import InputError, brief
+from msps_render.models.net import DualCueNet
+from msps_render.models.presets import ModelConfig
+
+FORMAT = "msps-dualcue-1"
+
+
+def save_checkpoint(path: Path, model, cfg: ModelConfig, extra: dict) -> Path:
+    """Write weights + config (+ `extra`) atomically to `path`."""
+    ck = {"model": model.state_dict(), "config": cfg.model_dump(mode="json"), "preset": cfg.preset,
+          "format": FORMAT, **extra}
+    with atomic_write(path) as tmp:
+        torch.save(ck, tmp)
+    return path
+
+
+def load_checkpoint(path: str | Path, expect_preset: str | None = None, map_location: str = "cpu"):
+    """(model in eval mode, ModelConfig, checkpoint dict). Clear errors for foreign files."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "checkpoint not found")
+    try:
+        ck = torch.load(p, map_location=map_location, weights_only=True)
+    except Exception as e:
+        raise InputError(p, f"not a loadable checkpoint ({brief(str(e), 100)})") from None
+    if not isinstance(ck, dict) or ck.get("format") != FORMAT:
+        raise InputError(p, "not an msps dual-cue checkpoint")
+    cfg = ModelConfig.model_validate(ck["config"])
+    if expect_preset and cfg.preset != expect_preset:
+        raise InputError(p, f"checkpoint is for preset '{cfg.preset}', expected '{expect_preset}'")
+    model = DualCueNet(cfg.net_config())
+    try:
+        model.load_state_dict(ck["model"])
+    except RuntimeError as e:
+        raise InputError(p, f"weights do not fit the '{cfg.preset}' network ({brief(str(e), 100)})") from None
+    model.eval()
+    return model, cfg, ck
