@@ -1,4 +1,4 @@
-"""Dataset pipeline efficiency and throughput (issue 5).
+"""Dataset pipeline efficiency and throughput.
 
 Usage: .venv/bin/python benchmarks/bench_pipeline.py [--shards 6] [--preset paper-train] [--out /tmp/bench-pipe]
 

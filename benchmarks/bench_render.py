@@ -1,4 +1,4 @@
-"""Render-stage timing: llvm_ad_rgb vs scalar_rgb, path vs direct, spp 16/64 (issue 2).
+"""Render-stage timing: llvm_ad_rgb vs scalar_rgb, path vs direct, spp 16/64.
 
 Usage:  .venv/bin/python benchmarks/bench_render.py [--repeats 5] [--threads 2]
 

@@ -1,4 +1,4 @@
-"""Training throughput of the model presets and their FLOP rate vs this CPU's fp32 GEMM rate (issue 6).
+"""Training throughput of the model presets and their FLOP rate vs this CPU's fp32 GEMM rate.
 
 Usage: .venv/bin/python benchmarks/bench_train.py [--threads 2] [--steps 20]
 

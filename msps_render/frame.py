@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from msps_render.io.images import write_exr, write_png
+from msps_render.preview import normal_to_rgb8, tonemap
 from msps_render.scene.spec import SceneSpec
 
 
@@ -52,9 +54,6 @@ class Frame:
     # ------------------------------------------------------------------ output
     def save(self, out_dir: str | Path) -> list[Path]:
         """Write EXR (image, normal, depth, mask) + PNG previews + scene.json."""
-        from msps_render.io.images import write_exr, write_png
-        from msps_render.preview import normal_to_rgb8, tonemap
-
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         written = [

@@ -1,4 +1,4 @@
-"""Fault matrix (issue 10): every bad input or hostile situation -> exit code, one line naming the
+"""Fault matrix: every bad input or hostile situation -> exit code, one line naming the
 input, nothing partial on disk.  Plus interrupts, orphan workers, worker recycling, locking, errors
 crossing process boundaries.  The chaos test (random SIGKILL/SIGINT + --resume) is `slow`.
 """

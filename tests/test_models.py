@@ -1,4 +1,4 @@
-"""The dual-cue network (issue 6): shapes, losses against hand computation, training, checkpoints, errors."""
+"""The dual-cue network: shapes, losses against hand computation, training, checkpoints, errors."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,4 @@
-"""Dataset pipeline (issue 5): determinism, resume after SIGKILL, verify, loader round trip, bad input."""
+"""Dataset pipeline: determinism, resume after SIGKILL, verify, loader round trip, bad input."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,4 @@
-"""Closed-form physics checks of the render stage (issue 2).
+"""Closed-form physics checks of the render stage.
 
 Tolerances:
 - Radiance: an orthographic Lambertian sphere lit by one directional light has

@@ -1,4 +1,4 @@
-"""Procedural shape families (issue 9): determinism, valid closed outward meshes, sharp creases,
+"""Procedural shape families: determinism, valid closed outward meshes, sharp creases,
 real concavities, clear config errors, and a tiny render per family."""
 from __future__ import annotations
 

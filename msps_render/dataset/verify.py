@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
+from msps_render.calibration import crosstalk_problem
 from msps_render.dataset import schema as K
 from msps_render.dataset.digest import file_digest
 from msps_render.dataset.manifest import SHARD_DIR, read_manifest
 from msps_render.dataset.reader import open_shard
-from msps_render.calibration import crosstalk_problem
 from msps_render.errors import InputError
 
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from msps_render.errors import InputError
 from msps_render.dataset import Manifest, load_manifest
+from msps_render.errors import InputError
 from msps_render.models.baseline import lambertian_ps
 from msps_render.models.metrics import angular_error_deg, error_stats
 

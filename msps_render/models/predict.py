@@ -83,7 +83,6 @@ def load_calibration(path: str | Path | None, light_dirs: str | None, crosstalk:
 
 
 def read_inputs(image_path: str | Path, mask_path: str | Path | None) -> tuple[np.ndarray, np.ndarray]:
-
     img = read_image(image_path)
     if img.shape[-1] != 3:
         raise InputError(image_path, f"expected a 3-channel RGB image, got {img.shape[-1]} channel(s)")

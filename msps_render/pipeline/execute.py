@@ -20,10 +20,18 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from msps_render.errors import WorkerDied
-from msps_render.pipeline.config import DatasetConfig
+import msps_render
+from msps_render.dataset import FrameRecord, Patches, ShardContent, write_shard
 from msps_render.dataset.manifest import SHARD_DIR
+from msps_render.errors import InputError, WorkerDied
+from msps_render.patches import patchify
+from msps_render.pipeline.config import DatasetConfig
 from msps_render.pipeline.plan import Task, frame_rngs, frame_seed
+from msps_render.render import render_frame
+from msps_render.render.memory import release_frame_memory
+from msps_render.render.sensor import apply_sensor
+from msps_render.render.variant import activate
+from msps_render.scene.sample import sample_scene
 
 
 @dataclass(frozen=True)
@@ -35,13 +43,6 @@ class WorkerSettings:
 
 def render_shard(task: Task, ws: WorkerSettings) -> dict:
     """Sample, render, patchify and write one shard. Returns its manifest entry."""
-    import msps_render
-    from msps_render.patches import patchify
-    from msps_render.render import render_frame
-    from msps_render.render.memory import release_frame_memory
-    from msps_render.scene.sample import sample_scene
-    from msps_render.dataset import FrameRecord, Patches, ShardContent, write_shard
-
     cfg = DatasetConfig.model_validate_json(task.config_json)
     d = cfg.dataset
     t0 = time.perf_counter()
@@ -55,8 +56,6 @@ def render_shard(task: Task, ws: WorkerSettings) -> dict:
         render_s += time.perf_counter() - tr
         sensor = getattr(cfg.scene, "sensor", None)  # optional sensor model (msps_render.spectral)
         if sensor is not None and getattr(sensor, "enabled", True):
-            from msps_render.render.sensor import apply_sensor
-
             frame = apply_sensor(frame, sensor, rng)
         p = patchify(frame, d.patches.size, d.patches.stride, d.patches.min_coverage)
         pats.append(p)
@@ -96,8 +95,6 @@ def _hash(s: str) -> str:
 
 
 def _worker_init(variant: str, threads: int | None) -> None:
-    from msps_render.render.variant import activate
-
     activate(variant, threads)
 
 
@@ -357,8 +354,6 @@ def run_dask(tasks: Iterable[Task], ws: WorkerSettings, scheduler: str, workers:
     try:
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError:
-        from msps_render.errors import InputError
-
         raise InputError("--scheduler", "Dask is not installed (pip install 'msps[dask]')") from None
     tasks = list(tasks)
     cluster = None

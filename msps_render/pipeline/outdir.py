@@ -14,8 +14,8 @@ import os
 import re
 from pathlib import Path
 
-from msps_render.errors import InputError
 from msps_render.dataset.manifest import MANIFEST, SHARD_DIR
+from msps_render.errors import InputError
 
 _TOP = {MANIFEST, f".{MANIFEST}.tmp"}
 _SHARD = re.compile(r"shard-\d{5,}\.h5")

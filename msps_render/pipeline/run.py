@@ -7,21 +7,21 @@ import threading
 import time
 from pathlib import Path
 
+import msps_render
+from msps_render.dataset import file_digest
+from msps_render.dataset.manifest import MANIFEST, SHARD_DIR, new_manifest, read_manifest, write_manifest
 from msps_render.errors import InputError, Interrupted
 from msps_render.pipeline.config import DatasetConfig, config_hash, config_json
 from msps_render.pipeline.execute import WorkerSettings, run_dask, run_local
-from msps_render.dataset.manifest import MANIFEST, SHARD_DIR, new_manifest, read_manifest, write_manifest
 from msps_render.pipeline.outdir import (OutLock, check_out_dir, remove_dataset, remove_if_empty,
                                          remove_temporaries, remove_unrecorded)
-from msps_render.pipeline.validate import validate_inputs
 from msps_render.pipeline.plan import plan
-from msps_render.dataset import file_digest
+from msps_render.pipeline.validate import validate_inputs
+from msps_render.render.variant import resolve_variant
 
 
 def _versions(variant: str) -> dict:
     import mitsuba as mi
-
-    import msps_render
 
     return {"msps": msps_render.__version__, "mitsuba": mi.__version__, "variant": variant}
 
@@ -46,8 +46,6 @@ def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, schedu
     raise `Interrupted`; any other failure before the first shard leaves nothing.
     `recycle_after`: replace a local worker after that many shards (None: never).
     """
-    from msps_render.render.variant import resolve_variant
-
     recycle_after = recycle_after if recycle_after is not None else max_tasks_per_child  # old name
     out = Path(out).expanduser().absolute()  # Dask workers resolve relative paths in their own cwd
     validate_inputs(cfg, getattr(cfg, "_source", None))

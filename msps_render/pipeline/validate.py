@@ -16,13 +16,21 @@ from pathlib import Path
 
 import numpy as np
 
+from msps_render.brdf import merl
+from msps_render.brdf.library import available_merl, load_catalogue
+from msps_render.calibration import check_crosstalk
 from msps_render.errors import InputError
+from msps_render.pipeline.config import condition_config
+from msps_render.scene.envmap import irradiance_on_axis, load_envmap
+from msps_render.scene.sample import sample_scene
+from msps_render.scene.shapes import build_mesh
+from msps_render.scene.spec import ShapeSpec
+from msps_render.spectral.config import SpectralConfig
+from msps_render.spectral.crosstalk import effective_crosstalk
 
 
 def _check_merl_file(p: Path) -> None:
     """Header and size of a MERL `.binary` (cheap: no 35 MB read); `read_merl` does the full check."""
-    from msps_render.brdf import merl
-
     try:
         size = p.stat().st_size
         with open(p, "rb") as fh:
@@ -42,7 +50,6 @@ def _check_merl_file(p: Path) -> None:
 def _check_materials(mc, seen: set) -> None:
     if not (mc.merl_fraction > 0 or mc.catalogue):
         return
-    from msps_render.brdf.library import available_merl, load_catalogue
 
     cat = load_catalogue(mc.catalogue)
     for _entry, path in available_merl(cat, mc.merl_dir):
@@ -54,8 +61,6 @@ def _check_materials(mc, seen: set) -> None:
 def _check_meshes(sc, seen: set) -> None:
     if sc.shape.source != "mesh":
         return
-    from msps_render.scene.shapes import build_mesh
-    from msps_render.scene.spec import ShapeSpec
 
     paths = sc.shape.mesh_paths()
     if not paths:
@@ -72,7 +77,6 @@ def _check_envmap(sc) -> None:
     env = sc.environment
     if not env.enabled or env.ratio <= 0 or env.source == "procedural":
         return
-    from msps_render.scene.envmap import irradiance_on_axis, load_envmap
 
     img = load_envmap(env.source)
     if float(irradiance_on_axis(img).sum()) <= 0 and float(img.max()) <= 0:
@@ -81,12 +85,7 @@ def _check_envmap(sc) -> None:
 
 
 def _check_crosstalk(sc) -> None:
-    from msps_render.calibration import check_crosstalk
-
     if sc.mode == "spectral":
-        from msps_render.spectral.config import SpectralConfig
-        from msps_render.spectral.crosstalk import effective_crosstalk
-
         sp = sc.spectral or SpectralConfig()
         check_crosstalk(effective_crosstalk(sp.lights, sp.camera), "scene.spectral (effective crosstalk)")
     else:
@@ -106,9 +105,6 @@ def validate_inputs(cfg, source: str | None = None) -> None:
 
     `source` (the config file) prefixes errors about config keys, so the line names the file too.
     """
-    from msps_render.pipeline.config import condition_config
-    from msps_render.scene.sample import sample_scene
-
     meshes: set = set()
     tables: set = set()
     for _name, value in cfg.conditions():

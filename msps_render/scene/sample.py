@@ -16,15 +16,24 @@ from pydantic import Field, field_validator
 from msps_render.brdf.families import FAMILIES, unknown_family
 from msps_render.config_io import StrictModel, read_toml, validate
 from msps_render.errors import InputError
-from msps_render.scene import lights as L
-from msps_render.scene import shapes as S
 from msps_render.scene.envmap import envmap_pixels, irradiance_on_axis
 from msps_render.scene.families import expand_families, sample_family_params
+from msps_render.scene.geometry import sample_blobby_coeffs
+from msps_render.scene.lights import PAPER_CROSSTALK, three_lights
 from msps_render.scene.materials import sample_analytic, sample_materials
-from msps_render.scene.primitives import PRIMITIVES, unknown_primitive
+from msps_render.scene.primitives import PRIMITIVES, sample_primitive_params, unknown_primitive
+from msps_render.scene.shapes import random_rotation, sample_split
 from msps_render.scene.spec import CameraSpec, EnvSpec, IntegratorSpec, SceneSpec, ShapeSpec
 from msps_render.spectral.config import SensorConfig, SpectralConfig
 from msps_render.spectral.crosstalk import effective_crosstalk
+
+
+def _known(names: list[str], registry: dict, message) -> list[str]:
+    """`names` if every one is in `registry`, else ValueError(message(first unknown))."""
+    for n in names:
+        if n not in registry:
+            raise ValueError(message(n))
+    return names
 
 
 class ShapeConfig(StrictModel):
@@ -49,10 +58,7 @@ class ShapeConfig(StrictModel):
     @field_validator("primitives")
     @classmethod
     def _known_primitives(cls, v):
-        for name in v:
-            if name not in PRIMITIVES:
-                raise ValueError(unknown_primitive(name))
-        return v
+        return _known(v, PRIMITIVES, unknown_primitive)
 
     @field_validator("families")
     @classmethod
@@ -90,18 +96,15 @@ class MaterialsConfig(StrictModel):
 
     @field_validator("families")
     @classmethod
-    def _known(cls, v):
-        for f in v:
-            if f not in FAMILIES:
-                raise ValueError(unknown_family(f))
-        return v
+    def _known_material_families(cls, v):
+        return _known(v, FAMILIES, unknown_family)
 
 
 class LightsConfig(StrictModel):
     kind: Literal["directional", "point"] = "directional"
     slant_deg: float = Field(30.0, gt=0.0, lt=90.0)
     tilts_deg: list[float] = Field(default_factory=lambda: [0.0, 120.0, 240.0])
-    crosstalk: list[list[float]] = Field(default_factory=lambda: L.PAPER_CROSSTALK.tolist())
+    crosstalk: list[list[float]] = Field(default_factory=lambda: PAPER_CROSSTALK.tolist())
     irradiance: float = Field(3.0, gt=0.0)
     distance: float | None = Field(None, gt=1.0)
     jitter_deg: float = Field(0.0, ge=0.0, le=20.0)
@@ -141,7 +144,7 @@ class SceneConfig(StrictModel):
     environment: EnvironmentConfig = EnvironmentConfig()
     camera: CameraSpec = CameraSpec()
     integrator: IntegratorSpec = IntegratorSpec()
-    # spectral mode / sensor (issue 4): `spectral` is used when mode == "spectral" (defaults if
+    # spectral mode / sensor: `spectral` is used when mode == "spectral" (defaults if
     # absent); `sensor` is applied after rendering by `msps_render.render.sensor.apply_sensor`.
     mode: Literal["rgb", "spectral"] = "rgb"
     spectral: SpectralConfig | None = None
@@ -149,7 +152,7 @@ class SceneConfig(StrictModel):
 
 
 def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator, frame_index: int | None = None) -> ShapeSpec:
-    rot = S.random_rotation(rng) if cfg.random_rotation else ShapeSpec.model_fields["rotation"].default
+    rot = random_rotation(rng) if cfg.random_rotation else ShapeSpec.model_fields["rotation"].default
     if cfg.source == "sphere":
         return ShapeSpec(kind="sphere", name="sphere", radius=cfg.radius)
     if cfg.source == "mesh":
@@ -164,7 +167,7 @@ def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator, frame_index: int |
                          rotation=rot, radius=cfg.radius)
     if cfg.source == "primitive":
         name = str(rng.choice(cfg.primitives))
-        return ShapeSpec(kind="primitive", name=name, params=S.sample_primitive_params(name, rng),
+        return ShapeSpec(kind="primitive", name=name, params=sample_primitive_params(name, rng),
                          rotation=rot, radius=cfg.radius)
     if cfg.source == "procedural":
         fams = expand_families(cfg.families)
@@ -177,10 +180,10 @@ def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator, frame_index: int |
                          rotation=rot, radius=cfg.radius)
     if cfg.n_shapes:  # a fixed pool, like the 10-shape Blobby dataset (train/val split by index)
         idx = int(rng.integers(cfg.n_shapes))
-        coeffs = S.sample_blobby_coeffs(np.random.default_rng([cfg.pool_seed, idx]), cfg.lmax, cfg.amplitude)
+        coeffs = sample_blobby_coeffs(np.random.default_rng([cfg.pool_seed, idx]), cfg.lmax, cfg.amplitude)
         name = f"blob{idx:03d}"
     else:
-        coeffs = S.sample_blobby_coeffs(rng, cfg.lmax, cfg.amplitude)
+        coeffs = sample_blobby_coeffs(rng, cfg.lmax, cfg.amplitude)
         name = "blob"
     return ShapeSpec(kind="blobby", name=name, sh_coeffs=coeffs, subdivisions=cfg.subdivisions,
                      rotation=rot, radius=cfg.radius)
@@ -208,10 +211,10 @@ def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = 
     else:
         n = int(rng.integers(cfg.materials.min_count, max(cfg.materials.min_count, cfg.materials.max_count) + 1))
     materials = _sample_materials(cfg.materials, n, rng)
-    split = S.sample_split(rng, n, cfg.materials.split)
+    split = sample_split(rng, n, cfg.materials.split)
     lc = cfg.lights
     crosstalk, spectra, camera_response = lc.crosstalk, None, None
-    if cfg.mode == "spectral":  # effective crosstalk of the light spectra x camera (issue 4)
+    if cfg.mode == "spectral":  # effective crosstalk of the light spectra x camera
         sc = cfg.spectral or SpectralConfig()
         if len(sc.lights) != len(lc.tilts_deg):
             raise InputError("scene.spectral.lights", f"{len(sc.lights)} light spectra for "
@@ -219,7 +222,7 @@ def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = 
         spectra, camera_response = sc.lights, sc.camera
         crosstalk = effective_crosstalk(sc.lights, sc.camera)
     slant = float(rng.uniform(*lc.slant_range_deg)) if lc.slant_range_deg is not None else lc.slant_deg
-    lights = L.three_lights(slant, lc.tilts_deg, crosstalk, lc.irradiance, lc.kind, lc.distance,
+    lights = three_lights(slant, lc.tilts_deg, crosstalk, lc.irradiance, lc.kind, lc.distance,
                             rng=rng, jitter_deg=lc.jitter_deg, intensity_jitter=lc.intensity_jitter)
     if spectra is not None:
         lights = tuple(l.model_copy(update={"spectrum": s}) for l, s in zip(lights, spectra))

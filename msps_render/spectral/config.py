@@ -9,6 +9,7 @@ from typing import Literal
 from pydantic import Field, field_validator
 
 from msps_render.config_io import StrictModel
+from msps_render.spectral.spectra import validate_camera_id, validate_light_id
 
 
 class SpectralConfig(StrictModel):
@@ -24,8 +25,6 @@ class SpectralConfig(StrictModel):
     @field_validator("lights")
     @classmethod
     def _lights(cls, v):
-        from msps_render.spectral.spectra import validate_light_id
-
         if not v:
             raise ValueError("need at least one light spectrum")
         for s in v:
@@ -35,8 +34,6 @@ class SpectralConfig(StrictModel):
     @field_validator("camera")
     @classmethod
     def _camera(cls, v):
-        from msps_render.spectral.spectra import validate_camera_id
-
         return validate_camera_id(v)
 
 

@@ -18,13 +18,11 @@ from functools import lru_cache
 import numpy as np
 
 from msps_render.errors import InputError
-from msps_render.spectral.spectra import WL_STEP, camera_sensitivities, light_spectrum
+from msps_render.spectral.spectra import GRID, WL_STEP, camera_sensitivities, light_spectrum
 
 
 def white_reflector():
     import colour
-
-    from msps_render.spectral.spectra import GRID
 
     return colour.SpectralDistribution(np.ones_like(GRID), GRID, name="white")
 
