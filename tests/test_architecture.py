@@ -104,3 +104,15 @@ def test_architecture_doc_names_only_what_exists():
                 and not re.search(rf"\b{code}\b", source)):
             missing.append(code)  # bare function names
     assert not missing, f"docs/architecture.md names what the code does not have: {sorted(set(missing))}"
+
+
+def test_import_graph_has_no_cycles():
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "import_graph.py"
+    spec = importlib.util.spec_from_file_location("import_graph", script)
+    graph = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(graph)
+    m = graph.measure()
+    assert m["module_cycles"] == [] and m["room_cycles"] == [], m["module_cycles"] + m["room_cycles"]

@@ -65,13 +65,6 @@ def demo(out: Path = typer.Option(Path("demo-out"), "--out", "-o", help="output 
 def version():
     """Toolkit, Mitsuba and variant versions."""
     import msps_render
+    from msps_render.render.variant import mitsuba_info
 
-    info = {"msps": msps_render.__version__}
-    try:
-        import mitsuba as mi
-
-        info["mitsuba"] = mi.__version__
-        info["variants"] = mi.variants()
-    except ImportError:
-        info["mitsuba"] = None
-    typer.echo(json.dumps(info, indent=2))
+    typer.echo(json.dumps({"msps": msps_render.__version__, **mitsuba_info()}, indent=2))

@@ -30,7 +30,7 @@ from msps_render.pipeline.plan import Task, frame_rngs, frame_seed
 from msps_render.render import render_frame
 from msps_render.render.memory import release_frame_memory
 from msps_render.render.sensor import apply_sensor
-from msps_render.render.variant import activate
+from msps_render.render.variant import activate, mitsuba_info
 from msps_render.scene.sample import sample_scene
 
 
@@ -75,9 +75,7 @@ def render_shard(task: Task, ws: WorkerSettings) -> dict:
             mask=frame.mask if d.storage.store_frames else None))
     P = d.patches.size
     cat = Patches.concat(pats, P)
-    import mitsuba as mi
-
-    attrs = {"toolkit_version": msps_render.__version__, "mitsuba_version": mi.__version__,
+    attrs = {"toolkit_version": msps_render.__version__, "mitsuba_version": mitsuba_info()["mitsuba"],
              "variant": ws.variant, "config_hash": _hash(task.config_json), "seed": task.seed,
              "shard_index": task.index, "condition": task.condition}
     out = Path(ws.out_dir) / SHARD_DIR / task.name

@@ -17,13 +17,11 @@ from msps_render.pipeline.outdir import (OutLock, check_out_dir, remove_dataset,
                                          remove_temporaries, remove_unrecorded)
 from msps_render.pipeline.plan import plan
 from msps_render.pipeline.validate import validate_inputs
-from msps_render.render.variant import resolve_variant
+from msps_render.render.variant import mitsuba_info, resolve_variant
 
 
 def _versions(variant: str) -> dict:
-    import mitsuba as mi
-
-    return {"msps": msps_render.__version__, "mitsuba": mi.__version__, "variant": variant}
+    return {"msps": msps_render.__version__, "mitsuba": mitsuba_info()["mitsuba"], "variant": variant}
 
 
 class _Terminated(BaseException):

@@ -32,6 +32,15 @@ class VariantFallbackWarning(RuntimeWarning):
     pass
 
 
+def mitsuba_info() -> dict:
+    """{'mitsuba': version, 'variants': [...]} of the installed Mitsuba ({'mitsuba': None} without it)."""
+    try:
+        import mitsuba as mi
+    except ImportError:
+        return {"mitsuba": None}
+    return {"mitsuba": mi.__version__, "variants": mi.variants()}
+
+
 @lru_cache(maxsize=None)
 def probe_variant(variant: str, timeout: float = 120.0) -> tuple[bool, str]:
     """Run a tiny render in a child process; (works, reason)."""
