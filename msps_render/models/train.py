@@ -6,10 +6,10 @@ the PCN learns to correct it per pixel. (Staged SCN->PCN training is the same
 loop run twice with `net.mode = "scn"` then `"dual"`; joint was simpler and
 reached lower validation error at equal time in our runs: docs/reproducing.md.)
 
-`train()` composes small steps, PS-FCN style: open the data, build the model,
-start or restore the run (`start_run`), then per batch `set_lr` + `train_step`,
-and every `val_every` steps `validate` + `record` (metrics line, best/last
-checkpoints).  Checkpoints are `models.checkpoint`; `last.pt` holds everything
+`train()` composes small steps, PS-FCN style: `open_data`, `build_model`,
+`start_run` (new, resumed or warm-started), then `fit`: per batch `set_lr` +
+`train_step`, every `val_every` steps `validate` + `record` (metrics line,
+best/last checkpoints).  Checkpoints are `models.checkpoint`; `last.pt` holds everything
 needed to resume the same schedule (optimizer, step, epoch, position, RNG state).
 """
 from __future__ import annotations
@@ -170,42 +170,21 @@ def record(run: Run, log, val_mae: float, losses: list[float], parts: dict, lr: 
     run.checkpoint("last.pt", val_mae)
 
 
-def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | Path, out: str | Path,
-          resume: bool = False, device: str = "cpu", progress: bool = True, verify: bool = True,
-          init: str | Path | None = None) -> dict:
-    """Train from scratch, continue a run (`resume`), or warm-start from another run's weights.
+def open_data(data, val, verify: bool):
+    """(training, validation) PatchDatasets; `InputError` if either has no patches."""
+    from msps_render.data import PatchDataset
 
-    `init` loads only the weights of a checkpoint of the same network (fresh optimizer and
-    schedule): how a longer run or a fine-tune on a new corpus starts from an earlier model.
-    """
-    from msps_render.data import PatchDataset, make_loader
-
-    out = Path(out)
-    t_cfg = cfg.train
     train_ds = PatchDataset(data, verify=verify)
     val_ds = PatchDataset(val, verify=verify)
     if len(train_ds) == 0 or len(val_ds) == 0:
         raise InputError(train_ds.root if len(train_ds) == 0 else val, "dataset has no patches")
-    model, opt = build_model(cfg, device)
-    run = Run(cfg, out, model, opt, data_hash(data))
-    start_run(run, resume, init)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=1))
-    loader = make_loader(train_ds, t_cfg.batch_size, shuffle=True, seed=t_cfg.seed, drop_last=True,
-                         num_workers=t_cfg.num_workers)
-    val_loader = make_loader(val_ds, 64, shuffle=True, seed=1234)
-    log = open(out / "metrics.jsonl", "a")
-    run.n_params = count_parameters(model)
-    run.t_start = time.perf_counter() - run.state["elapsed"]
-    run.budget = t_cfg.max_minutes * 60 if t_cfg.max_minutes else float("inf")
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    return train_ds, val_ds
 
-        bar = tqdm(total=t_cfg.max_steps, initial=run.state["step"], unit="step", dynamic_ncols=True)
 
-    state = run.state
-    model.train()
+def fit(run: Run, loader, val_loader, log, bar, device: str) -> None:
+    """Epochs of `train_step` until the step or time budget; validate + `record` every `val_every`."""
+    t_cfg, state = run.cfg.train, run.state
+    run.model.train()
     done = False
     window_t, window_n, run_loss = time.perf_counter(), 0, []
     while not done and state["epoch"] < t_cfg.epochs:
@@ -213,8 +192,8 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
         for i, b in enumerate(loader):
             if i < state["batch_in_epoch"]:  # resume mid-epoch on the same deterministic order
                 continue
-            lr = t_cfg.lr * lr_factor(cfg, run.progress())
-            set_lr(opt, lr)
+            lr = t_cfg.lr * lr_factor(run.cfg, run.progress())
+            set_lr(run.opt, lr)
             loss, parts = train_step(run, b, device)
             state["step"] += 1
             state["batch_in_epoch"] = i + 1
@@ -225,7 +204,7 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
                 bar.set_postfix(loss=f"{np.mean(run_loss[-50:]):.4f}", epoch=state["epoch"])
             stop = run.should_stop()
             if state["step"] % t_cfg.val_every == 0 or stop:
-                v = validate(model, val_loader, t_cfg.val_max_patches)
+                v = validate(run.model, val_loader, t_cfg.val_max_patches)
                 record(run, log, v, run_loss, parts, lr, window_n / (time.perf_counter() - window_t))
                 window_t, window_n, run_loss = time.perf_counter(), 0, []
             if stop:
@@ -234,12 +213,44 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
         if not done:
             state["epoch"] += 1
             state["batch_in_epoch"] = 0
-    run.checkpoint("last.pt")
-    log.close()
+
+
+def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | Path, out: str | Path,
+          resume: bool = False, device: str = "cpu", progress: bool = True, verify: bool = True,
+          init: str | Path | None = None) -> dict:
+    """Train from scratch, continue a run (`resume`), or warm-start from another run's weights.
+
+    `init` loads only the weights of a checkpoint of the same network (fresh optimizer and
+    schedule): how a longer run or a fine-tune on a new corpus starts from an earlier model.
+    """
+    from msps_render.data import make_loader
+
+    out, t_cfg = Path(out), cfg.train
+    train_ds, val_ds = open_data(data, val, verify)
+    model, opt = build_model(cfg, device)
+    run = Run(cfg, out, model, opt, data_hash(data))
+    start_run(run, resume, init)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=1))
+    loader = make_loader(train_ds, t_cfg.batch_size, shuffle=True, seed=t_cfg.seed, drop_last=True,
+                         num_workers=t_cfg.num_workers)
+    val_loader = make_loader(val_ds, 64, shuffle=True, seed=1234)
+    with open(out / "metrics.jsonl", "a") as log:
+        run.n_params = count_parameters(model)
+        run.t_start = time.perf_counter() - run.state["elapsed"]
+        run.budget = t_cfg.max_minutes * 60 if t_cfg.max_minutes else float("inf")
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=t_cfg.max_steps, initial=run.state["step"], unit="step", dynamic_ncols=True)
+        fit(run, loader, val_loader, log, bar, device)
+        run.checkpoint("last.pt")
     if bar:
         bar.close()
     plot_metrics(out / "metrics.jsonl", out / "metrics.png")
-    return {"steps": state["step"], "epochs": state["epoch"], "best_val_mae_deg": state["best_val"],
+    s = run.state
+    return {"steps": s["step"], "epochs": s["epoch"], "best_val_mae_deg": s["best_val"],
             "elapsed_s": run.elapsed(), "n_params": run.n_params}
 
 
