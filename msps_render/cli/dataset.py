@@ -8,9 +8,11 @@ from typing import List, Optional
 import typer
 
 from msps_render.cli.app import app, clean_errors
+from msps_render.errors import InputError
 
 
 @app.command("render")
+@clean_errors
 def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.toml) or TOML path"),
                out: Path = typer.Option(..., "--out", "-o", help="dataset directory"),
                seed: Optional[int] = typer.Option(None, help="root seed (overrides dataset.seed)"),
@@ -27,92 +29,76 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.run import render_dataset
 
-    @clean_errors
-    def go():
-        overrides = list(set_) + ([f"dataset.seed={seed}"] if seed is not None else [])
-        cfg = load_config(config, overrides)
-        m = render_dataset(cfg, out, workers=workers, scheduler=scheduler, resume=resume, force=force,
-                           variant=variant, threads=threads, progress=not quiet,
-                           recycle_after=recycle_after or None)
-        typer.echo(f"{out}: {len(m['shards'])} shards, {m['n_patches']} patches, complete={m['complete']}")
-
-    go()
+    overrides = list(set_) + ([f"dataset.seed={seed}"] if seed is not None else [])
+    cfg = load_config(config, overrides)
+    m = render_dataset(cfg, out, workers=workers, scheduler=scheduler, resume=resume, force=force,
+                       variant=variant, threads=threads, progress=not quiet,
+                       recycle_after=recycle_after or None)
+    typer.echo(f"{out}: {len(m['shards'])} shards, {m['n_patches']} patches, complete={m['complete']}")
 
 
 @app.command("verify")
+@clean_errors
 def verify_cmd(root: Path = typer.Argument(..., help="dataset directory")):
     """Check every shard: complete, checksums, finite, unit normals, consistent masks. Exit 1 if bad."""
     from msps_render.dataset.verify import verify_dataset
 
-    @clean_errors
-    def go():
-        bad = verify_dataset(root)
-        if bad:
-            for name, probs in sorted(bad.items()):
-                typer.echo(f"BAD {root / 'shards' / name}: {'; '.join(probs)}", err=True)
-            raise typer.Exit(1)
-        typer.echo(f"{root}: all shards OK")
-
-    go()
+    bad = verify_dataset(root)
+    if bad:
+        for name, probs in sorted(bad.items()):
+            typer.echo(f"BAD {root / 'shards' / name}: {'; '.join(probs)}", err=True)
+        raise typer.Exit(1)
+    typer.echo(f"{root}: all shards OK")
 
 
 @app.command("inspect")
+@clean_errors
 def inspect_cmd(path: Path = typer.Argument(..., help="dataset directory or shard .h5")):
     """Summary table of a dataset or one shard."""
     from rich.console import Console
     from rich.table import Table
 
-    from msps_render.errors import InputError
-    from msps_render.dataset.manifest import read_manifest
-    from msps_render.dataset import shard_summary
+    from msps_render.dataset import read_manifest, shard_summary
 
-    @clean_errors
-    def go():
-        con = Console()
-        if path.is_dir():
-            m = read_manifest(path)
-            if m is None:
-                raise InputError(path, "no dataset.json here")
-            t = Table(title=f"{path} (config {m['config_hash'][:12]}, seed {m['seed']}, complete={m['complete']})")
-            for c in ("shard", "condition", "frames", "patches", "render s", "wall s"):
-                t.add_column(c)
-            for name, e in sorted(m["shards"].items()):
-                t.add_row(name, e.get("condition", ""), str(e["n_frames"]), str(e["n_patches"]),
-                          f"{e.get('render_seconds', 0):.2f}", f"{e.get('wall_seconds', 0):.2f}")
-            con.print(t)
-            con.print(f"total patches: {sum(e['n_patches'] for e in m['shards'].values())}; "
-                      f"versions: {json.dumps(m.get('versions', {}))}")
-        elif path.is_file():
-            info = shard_summary(path)
-            t = Table(title=str(path))
-            t.add_column("dataset")
-            t.add_column("shape")
-            t.add_column("dtype")
-            t.add_column("compression")
-            for n, (shape, dt, comp) in info.pop("datasets").items():
-                t.add_row(n, str(shape), dt, str(comp))
-            con.print(t)
-            con.print({k: v for k, v in info.items()})
-        else:
-            raise InputError(path, "not found")
-
-    go()
+    con = Console()
+    if path.is_dir():
+        m = read_manifest(path)
+        if m is None:
+            raise InputError(path, "no dataset.json here")
+        t = Table(title=f"{path} (config {m['config_hash'][:12]}, seed {m['seed']}, complete={m['complete']})")
+        for c in ("shard", "condition", "frames", "patches", "render s", "wall s"):
+            t.add_column(c)
+        for name, e in sorted(m["shards"].items()):
+            t.add_row(name, e.get("condition", ""), str(e["n_frames"]), str(e["n_patches"]),
+                      f"{e.get('render_seconds', 0):.2f}", f"{e.get('wall_seconds', 0):.2f}")
+        con.print(t)
+        con.print(f"total patches: {sum(e['n_patches'] for e in m['shards'].values())}; "
+                  f"versions: {json.dumps(m.get('versions', {}))}")
+    elif path.is_file():
+        info = shard_summary(path)
+        t = Table(title=str(path))
+        t.add_column("dataset")
+        t.add_column("shape")
+        t.add_column("dtype")
+        t.add_column("compression")
+        for n, (shape, dt, comp) in info.pop("datasets").items():
+            t.add_row(n, str(shape), dt, str(comp))
+        con.print(t)
+        con.print({k: v for k, v in info.items()})
+    else:
+        raise InputError(path, "not found")
 
 
 @app.command("preview")
+@clean_errors
 def preview_cmd(root: Path = typer.Argument(..., help="dataset directory"),
                 out: Path = typer.Option(..., "--out", "-o", help="PNG contact sheet"),
                 n: int = typer.Option(8, help="number of samples")):
     """Contact sheet (images, normal maps, masks) + slant/material/coverage distributions."""
-    from msps_render.errors import InputError
     from msps_render.pipeline.outdir import check_writable
     from msps_render.pipeline.preview import preview_dataset
 
-    @clean_errors
-    def go():
-        if not (root / "dataset.json").is_file():
-            raise InputError(root, "no dataset.json here")
-        check_writable(out.parent)
-        typer.echo(f"wrote {preview_dataset(root, out, n)}")
-
-    go()
+    if not (root / "dataset.json").is_file():
+        raise InputError(root, "no dataset.json here")
+    check_writable(out.parent)
+    typer.echo(f"wrote {preview_dataset(root, out, n)}")

@@ -10,11 +10,8 @@ import typer
 from msps_render.cli.app import app, clean_errors
 
 
-def _run(fn):
-    return clean_errors(fn)()
-
-
 @app.command("train")
+@clean_errors
 def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAME.toml) or TOML path"),
               data: List[Path] = typer.Option(..., help="training dataset directory (repeat to train "
                                               "on several as one)"),
@@ -27,45 +24,40 @@ def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAM
               device: str = typer.Option("cpu", help="cpu or cuda"),
               threads: Optional[int] = typer.Option(None, help="torch CPU threads")):
     """Train the dual-cue network (or an ablation: --set net.mode=scn|pcn)."""
+    import torch
 
-    def go():
-        import torch
+    from msps_render.models.presets import load_model_config
+    from msps_render.models.train import train
 
-        from msps_render.models.presets import load_model_config
-        from msps_render.models.train import train
-
-        if threads:
-            torch.set_num_threads(threads)
-        cfg = load_model_config(config, list(set_))
-        typer.echo(json.dumps(train(cfg, data if len(data) > 1 else data[0], val, out, resume=resume, device=device, init=init)))
-
-    _run(go)
+    if threads:
+        torch.set_num_threads(threads)
+    cfg = load_model_config(config, list(set_))
+    typer.echo(json.dumps(train(cfg, data if len(data) > 1 else data[0], val, out, resume=resume, device=device,
+                                init=init)))
 
 
 @app.command("eval")
+@clean_errors
 def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)"),
              out: Path = typer.Option(..., help="report directory"),
              checkpoint: Optional[Path] = typer.Option(None, help="checkpoint (default: models/dualcue-cpu.pt)"),
              method: str = typer.Option("net", help="net or lambertian"),
              max_patches: Optional[int] = typer.Option(None, help="limit per condition")):
     """Angular-error statistics, SSIM, per-object table, robustness (metrics.json + plots)."""
+    from msps_render.models.evaluate import evaluate
+    from msps_render.pipeline.outdir import check_writable
 
-    def go():
-        from msps_render.models.evaluate import evaluate
-        from msps_render.pipeline.outdir import check_writable
-
-        check_writable(out, "report")
-        r = evaluate(data, out, checkpoint=checkpoint, method=method, max_patches=max_patches)
-        for cond, v in r["conditions"].items():
-            p = v["patches"]
-            typer.echo(f"{cond or 'all'}: MAE {p['mae_deg']:.2f} deg, median {p['median_deg']:.2f}, "
-                       f"<10deg {p['pct_under_10']:.1f}%, SSIM {p['ssim']:.4f} ({p['n_patches']} patches)")
-        typer.echo(f"wrote {out / 'metrics.json'}")
-
-    _run(go)
+    check_writable(out, "report")
+    r = evaluate(data, out, checkpoint=checkpoint, method=method, max_patches=max_patches)
+    for cond, v in r["conditions"].items():
+        p = v["patches"]
+        typer.echo(f"{cond or 'all'}: MAE {p['mae_deg']:.2f} deg, median {p['median_deg']:.2f}, "
+                   f"<10deg {p['pct_under_10']:.1f}%, SSIM {p['ssim']:.4f} ({p['n_patches']} patches)")
+    typer.echo(f"wrote {out / 'metrics.json'}")
 
 
 @app.command("predict")
+@clean_errors
 def predict_cmd(image: Path = typer.Argument(..., help="EXR/HDR/PNG/NPY image (linear RGB)"),
                 out: Path = typer.Option(..., help="output path stem (writes .npy and .png)"),
                 checkpoint: Optional[Path] = typer.Option(None, help="checkpoint (default: shipped cpu model)"),
@@ -75,13 +67,9 @@ def predict_cmd(image: Path = typer.Argument(..., help="EXR/HDR/PNG/NPY image (l
                 light_dirs: Optional[str] = typer.Option(None, help="JSON 3x3, rows toward the lights"),
                 crosstalk: Optional[str] = typer.Option(None, help="JSON 3x3 crosstalk matrix")):
     """Normal map of a whole image (overlapping 40x40 tiles, blended) or by the Lambertian baseline."""
+    from msps_render.models.predict import predict_main
+    from msps_render.pipeline.outdir import check_writable
 
-    def go():
-        from msps_render.models.predict import predict_main
-        from msps_render.pipeline.outdir import check_writable
-
-        check_writable(out.parent)
-        files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk)
-        typer.echo("wrote " + ", ".join(map(str, files)))
-
-    _run(go)
+    check_writable(out.parent)
+    files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk)
+    typer.echo("wrote " + ", ".join(map(str, files)))
