@@ -24,6 +24,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from msps_render.dataset import schema as K  # the shard's HDF5 keys
 from msps_render.pipeline.config import load_config
 from msps_render.pipeline.run import render_dataset
 
@@ -39,7 +40,7 @@ def bare_render_seconds(root: Path, variant: str, threads: int) -> tuple[float, 
     total, n = 0.0, 0
     for p in sorted((root / "shards").glob("shard-*.h5")):
         with h5py.File(p, "r") as h:
-            specs = [SceneSpec.model_validate_json(s) for s in h["frames/scene_json"].asstr()[()]]
+            specs = [SceneSpec.model_validate_json(s) for s in h[K.FRAME_SCENE_JSON].asstr()[()]]
         for spec in specs:
             scene = mi.load_dict(build_scene_dict(spec, mi))
             params = mi.traverse(scene)
@@ -82,7 +83,7 @@ def float16_error(root: Path) -> dict:
 
     p = sorted((root / "shards").glob("shard-*.h5"))[0]
     with h5py.File(p, "r") as h:
-        spec = SceneSpec.model_validate_json(h["frames/scene_json"].asstr()[0])
+        spec = SceneSpec.model_validate_json(h[K.FRAME_SCENE_JSON].asstr()[0])
     f = render_frame(spec)
     n32 = f.normal[f.mask]
     n16 = n32.astype(np.float16).astype(np.float32)

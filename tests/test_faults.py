@@ -19,6 +19,7 @@ import h5py
 import numpy as np
 import pytest
 
+from msps_render.dataset import schema as K  # the shard's HDF5 keys
 from msps_render.errors import InputError, Interrupted
 from msps_render.pipeline.config import load_config
 from msps_render.dataset.manifest import read_manifest
@@ -218,7 +219,7 @@ def test_environment_map_files_render(suffix, tmp_path):
     m = render_dataset(cfg, tmp_path / "ds", progress=False, variant=_variant())
     assert m["complete"]
     with h5py.File(tmp_path / "ds" / "shards" / "shard-00000.h5", "r") as h:
-        assert h["frames/env_ratio"][0] == pytest.approx(0.5)
+        assert h[K.FRAME_ENV_RATIO][0] == pytest.approx(0.5)
 
 
 # ----------------------------------------------------------------------------- --out
@@ -532,7 +533,7 @@ def test_corrupted_chunk_through_patchdataset_names_the_file(tmp_path, reference
     shutil.copytree(reference[1], out)
     shard = out / "shards" / "shard-00001.h5"
     with h5py.File(shard, "r") as h:
-        info = h["patches/image"].id.get_chunk_info(0)
+        info = h[K.PATCH_IMAGE].id.get_chunk_info(0)
     with open(shard, "r+b") as f:
         f.seek(info.byte_offset + info.size // 2)
         f.write(bytes(16))
@@ -549,7 +550,7 @@ def test_verify_flags_unusable_crosstalk(M, tmp_path, reference):
     shutil.copytree(reference[1], out)
     shard = out / "shards" / "shard-00002.h5"
     with h5py.File(shard, "r+") as h:
-        h["frames/crosstalk"][...] = M.astype(np.float32)
+        h[K.FRAME_CROSSTALK][...] = M.astype(np.float32)
     m = json.loads((out / "dataset.json").read_text())
     m["shards"]["shard-00002.h5"]["file_sha256"] = file_digest(shard)  # only the values are wrong
     (out / "dataset.json").write_text(json.dumps(m))

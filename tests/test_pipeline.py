@@ -13,6 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
+from msps_render.dataset import schema as K  # the shard's HDF5 keys
 from msps_render.errors import InputError
 from msps_render.pipeline.config import load_config
 from msps_render.dataset.manifest import read_manifest
@@ -83,11 +84,11 @@ def test_reference_dataset_is_complete_and_verifies(reference):
     with h5py.File(out / "shards" / "shard-00000.h5", "r") as h:
         assert h.attrs["complete"] and h.attrs["format_version"] == 1
         assert h.attrs["config_hash"] and h.attrs["variant"].startswith("llvm")
-        assert h["patches/image"].shape[1:] == (16, 16, 3)
-        assert h["patches/image"].fletcher32 and h["patches/image"].compression == "lzf"
-        ld = h["frames/light_dirs"][0]
+        assert h[K.PATCH_IMAGE].shape[1:] == (16, 16, 3)
+        assert h[K.PATCH_IMAGE].fletcher32 and h[K.PATCH_IMAGE].compression == "lzf"
+        ld = h[K.FRAME_LIGHT_DIRS][0]
         np.testing.assert_allclose(np.linalg.norm(ld, axis=1), 1, atol=1e-6)
-        spec = json.loads(h["frames/scene_json"].asstr()[0])
+        spec = json.loads(h[K.FRAME_SCENE_JSON].asstr()[0])
         assert spec["lights"][0]["slant_deg"] == pytest.approx(30)
 
 
@@ -169,9 +170,9 @@ def test_verify_catches_corruption(reference, tmp_path):
     # 4. a NaN patch
     d = _corrupt_copy(ref, tmp_path, "nan")
     with h5py.File(d / "shards" / shard, "r+") as h:
-        img = h["patches/image"][()]
+        img = h[K.PATCH_IMAGE][()]
         img[0, 3, 3, 1] = np.nan
-        h["patches/image"][...] = img
+        h[K.PATCH_IMAGE][...] = img
     assert any("NaN" in s for s in verify_dataset(d)[shard])
     # the CLI exits 1 naming the shard
     r = subprocess.run([sys.executable, "-m", "msps_render.cli", "verify", str(d)], capture_output=True, text=True)
@@ -193,8 +194,8 @@ def test_dataset_patches_equal_rendered_frame_crops(tmp_path):
     assert len(ds) == read_manifest(out)["n_patches"]
     frames = list(iter_frames(out))
     with h5py.File(out / "shards" / "shard-00000.h5", "r") as h:
-        spec = SceneSpec.from_json(h["frames/scene_json"].asstr()[1])
-        fi, yx = h["patches/frame_index"][()], h["patches/yx"][()]
+        spec = SceneSpec.from_json(h[K.FRAME_SCENE_JSON].asstr()[1])
+        fi, yx = h[K.PATCH_FRAME_INDEX][()], h[K.PATCH_YX][()]
     frame = render_frame(spec, variant=_variant())  # re-render from the stored SceneSpec
     np.testing.assert_array_equal(frame.image, frames[1].image)  # deterministic
     P = 16
@@ -278,7 +279,7 @@ def test_sweep_conditions_share_scenes(tmp_path):
     objs = []
     for name in sorted(m["shards"]):
         with h5py.File(out / "shards" / name, "r") as h:
-            objs.append([json.loads(s)["shape"] for s in h["frames/scene_json"].asstr()[()]])
-            slant = h["frames/slant_deg"][()]
+            objs.append([json.loads(s)["shape"] for s in h[K.FRAME_SCENE_JSON].asstr()[()]])
+            slant = h[K.FRAME_SLANT_DEG][()]
         assert np.allclose(slant, 20.0 if name.endswith("0.h5") else 40.0)
     assert objs[0] == objs[1]  # same objects under both conditions
