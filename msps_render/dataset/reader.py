@@ -72,12 +72,6 @@ def read_frame_table(path: str | Path) -> dict[str, list]:
                 "condition": h[K.FRAME_CONDITION].asstr()[()].tolist()}
 
 
-def read_scene_json(path: str | Path) -> list[str]:
-    """The SceneSpec JSON of every frame of a shard."""
-    with shard_errors(path), open_shard(path) as h:
-        return h[K.FRAME_SCENE_JSON].asstr()[()].tolist()
-
-
 def has_whole_frames(h) -> bool:
     return K.FRAME_IMAGE in h
 
