@@ -23,30 +23,32 @@ PRESET_DIR = resources.data_dir("scenes")  # where `load_config("<name>")` looks
 
 
 class PatchConfig(StrictModel):
-    size: int = Field(40, ge=8, le=512)
-    stride: int = Field(20, ge=1, le=512)
-    min_coverage: float = Field(0.5, ge=0.0, le=1.0, description="fraction of object pixels to keep a patch")
+    size: int = Field(40, ge=8, le=512, description="patch side (px)")
+    stride: int = Field(20, ge=1, le=512, description="step between patch origins (px)")
+    min_coverage: float = Field(0.5, ge=0.0, le=1.0, description="keep a patch when at least this fraction of its pixels is object")
 
 
 class StorageConfig(StrictModel):
-    compression: Literal["lzf", "gzip", "none"] = "lzf"
-    image_dtype: Literal["float16", "float32"] = "float16"
-    normal_dtype: Literal["float16", "float32"] = "float16"
+    compression: Literal["lzf", "gzip", "none"] = Field("lzf", description="HDF5 filter of every array")
+    image_dtype: Literal["float16", "float32"] = Field("float16", description="stored dtype of patch images")
+    normal_dtype: Literal["float16", "float32"] = Field("float16", description="stored dtype of patch normals")
     store_frames: bool = Field(False, description="also keep whole frames (test sets)")
 
 
 class DatasetSection(StrictModel):
-    name: str = "dataset"
-    seed: int = Field(0, ge=0)
-    n_shards: int = Field(4, ge=1, le=100000)
-    frames_per_shard: int = Field(8, ge=1, le=100000)
+    name: str = Field("dataset", description="dataset name (recorded in the manifest)")
+    seed: int = Field(0, ge=0, description="root seed: frame j of shard k depends only on (seed, k, j)")
+    n_shards: int = Field(4, ge=1, le=100000, description="shards per condition (one HDF5 file each)")
+    frames_per_shard: int = Field(8, ge=1, le=100000, description="rendered frames per shard")
     patches: PatchConfig = PatchConfig()
     storage: StorageConfig = StorageConfig()
 
 
 class SweepConfig(StrictModel):
-    key: str
-    values: list[Any] = Field(min_length=1)
+    key: str = Field(description="the swept config key, e.g. 'environment.ratio' (short for "
+                                 "'scene.environment.ratio')")
+    values: list[Any] = Field(min_length=1, description="one condition per value; each condition renders "
+                                                        "the same shard seeds")
 
 
 class DatasetConfig(StrictModel):

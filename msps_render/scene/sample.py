@@ -37,8 +37,11 @@ def _known(names: list[str], registry: dict, message) -> list[str]:
 
 
 class ShapeConfig(StrictModel):
-    source: Literal["blobby", "mesh", "sphere", "primitive", "procedural"] = "blobby"
-    primitives: list[str] = Field(default_factory=lambda: list(PRIMITIVES))
+    source: Literal["blobby", "mesh", "sphere", "primitive", "procedural"] = Field(
+        "blobby", description="what the object is: random spherical-harmonic blob, user meshes, a sphere, "
+                              "a primitive, or a procedural shape family (docs/shapes.md)")
+    primitives: list[str] = Field(default_factory=lambda: list(PRIMITIVES),
+                                  description="source='primitive': primitives to draw from")
     families: list[str] = Field(default_factory=lambda: ["mixed"],
                                 description="source='procedural': shape families, one drawn per shape "
                                             "('mixed' = all: detailed, creased, concave, thin, composite)")
@@ -47,13 +50,14 @@ class ShapeConfig(StrictModel):
         "random", description="source='mesh': draw a mesh per frame (random) or take them in turn (cycle: "
                               "frame k of each condition gets mesh k mod N, so every mesh gets the same "
                               "number of frames)")
-    lmax: int = Field(4, ge=1, le=8)
-    amplitude: float = Field(0.3, ge=0.0, le=0.6)
-    subdivisions: int = Field(5, ge=2, le=7)
-    radius: float = Field(0.95, gt=0, le=1.0)
-    random_rotation: bool = True
+    lmax: int = Field(4, ge=1, le=8, description="blobby: highest spherical-harmonic degree")
+    amplitude: float = Field(0.3, ge=0.0, le=0.6, description="blobby: SH perturbation amplitude (x radius)")
+    subdivisions: int = Field(5, ge=2, le=7, description="blobby: icosphere subdivisions of the mesh")
+    radius: float = Field(0.95, gt=0, le=1.0, description="object bounding radius (scene units; the view "
+                                                          "half-extent is camera.extent)")
+    random_rotation: bool = Field(True, description="rotate each object uniformly at random")
     n_shapes: int | None = Field(None, ge=1, description="blobby/procedural: draw from a fixed pool of this many shapes")
-    pool_seed: int = 0
+    pool_seed: int = Field(0, description="seed of the fixed shape pool (n_shapes)")
 
     @field_validator("primitives")
     @classmethod
@@ -79,10 +83,11 @@ class ShapeConfig(StrictModel):
 
 
 class MaterialsConfig(StrictModel):
-    min_count: int = Field(2, ge=1, le=8)
-    max_count: int = Field(3, ge=1, le=8)
+    min_count: int = Field(2, ge=1, le=8, description="fewest materials per object (one per part)")
+    max_count: int = Field(3, ge=1, le=8, description="most materials per object")
     families: list[str] = Field(default_factory=lambda: ["diffuse", "plastic", "roughplastic",
-                                                         "roughconductor", "principled"])
+                                                         "roughconductor", "principled"],
+                                description="analytic material families to draw from")
     merl_fraction: float = Field(0.0, ge=0.0, le=1.0, description="share of measured (MERL) materials")
     measured: Literal["auto", "merl", "nbrdf", "generated"] = Field(
         "auto", description="measured materials: real MERL file if found else built-in Neural-BRDF fit "
@@ -90,9 +95,11 @@ class MaterialsConfig(StrictModel):
     holdout: Literal["train", "test", "all"] = Field(
         "train", description="held-out materials (brdf/split.toml): excluded (train), only (test), or all")
     split_file: str | None = Field(None, description="held-out split (default brdf/split.toml)")
-    catalogue: str | None = None
-    merl_dir: str | None = None
-    split: Literal["field", "planes"] = "field"
+    catalogue: str | None = Field(None, description="material catalogue TOML (default: brdf/catalogue.toml)")
+    merl_dir: str | None = Field(None, description="folder of MERL .binary files (else $MSPS_MERL_DIR); "
+                                                   "used only when merl_fraction > 0")
+    split: Literal["field", "planes"] = Field("field", description="how the object is divided into "
+                                                                   "material parts")
 
     @field_validator("families")
     @classmethod
@@ -101,14 +108,23 @@ class MaterialsConfig(StrictModel):
 
 
 class LightsConfig(StrictModel):
-    kind: Literal["directional", "point"] = "directional"
-    slant_deg: float = Field(30.0, gt=0.0, lt=90.0)
-    tilts_deg: list[float] = Field(default_factory=lambda: [0.0, 120.0, 240.0])
-    crosstalk: list[list[float]] = Field(default_factory=lambda: PAPER_CROSSTALK.tolist())
-    irradiance: float = Field(3.0, gt=0.0)
-    distance: float | None = Field(None, gt=1.0)
-    jitter_deg: float = Field(0.0, ge=0.0, le=20.0)
-    intensity_jitter: float = Field(0.0, ge=0.0, lt=1.0)
+    kind: Literal["directional", "point"] = Field("directional", description="light type")
+    slant_deg: float = Field(30.0, gt=0.0, lt=90.0, description="angle between each light and the view "
+                                                                "axis (deg)")
+    tilts_deg: list[float] = Field(default_factory=lambda: [0.0, 120.0, 240.0],
+                                   description="azimuth of each light around the view axis (deg), one per "
+                                               "colour channel")
+    crosstalk: list[list[float]] = Field(default_factory=lambda: PAPER_CROSSTALK.tolist(),
+                                         description="3x3 matrix: row = light, column = camera channel "
+                                                     "response (rgb mode)")
+    irradiance: float = Field(3.0, gt=0.0, description="irradiance of each light on a surface facing it "
+                                                       "(linear units)")
+    distance: float | None = Field(None, gt=1.0, description="point lights: distance from the origin "
+                                                             "(scene units)")
+    jitter_deg: float = Field(0.0, ge=0.0, le=20.0, description="random perturbation of each light "
+                                                                "direction per frame (deg)")
+    intensity_jitter: float = Field(0.0, ge=0.0, lt=1.0, description="relative random change of each "
+                                                                     "light's intensity per frame")
     slant_range_deg: tuple[float, float] | None = Field(
         None, description="draw the slant per frame uniformly in [lo, hi] deg (robust corpora); "
                           "overrides slant_deg")
@@ -122,12 +138,12 @@ class LightsConfig(StrictModel):
 
 
 class EnvironmentConfig(StrictModel):
-    enabled: bool = False
-    source: str = "procedural"
+    enabled: bool = Field(False, description="add environment (ambient) light")
+    source: str = Field("procedural", description="'procedural' (seeded sky) or an env-map file (.exr/.hdr)")
     ratio: float = Field(0.1, ge=0.0, description="env irradiance / coloured-light irradiance")
     ratio_range: tuple[float, float] | None = Field(
         None, description="draw the ratio per frame uniformly in [lo, hi] (robust corpora); overrides ratio")
-    random_rotation: bool = True
+    random_rotation: bool = Field(True, description="rotate the env map at random per frame")
 
     @field_validator("ratio_range")
     @classmethod
@@ -146,7 +162,8 @@ class SceneConfig(StrictModel):
     integrator: IntegratorSpec = IntegratorSpec()
     # spectral mode / sensor: `spectral` is used when mode == "spectral" (defaults if
     # absent); `sensor` is applied after rendering by `msps_render.render.sensor.apply_sensor`.
-    mode: Literal["rgb", "spectral"] = "rgb"
+    mode: Literal["rgb", "spectral"] = Field("rgb", description="rgb: crosstalk matrix given; spectral: "
+                                                                 "light spectra x camera sensitivities")
     spectral: SpectralConfig | None = None
     sensor: SensorConfig | None = None
 

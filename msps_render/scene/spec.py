@@ -39,13 +39,14 @@ def _unit(v: Vec3, what: str) -> Vec3:
 class CameraSpec(FrozenModel):
     """Orthographic by default: photometric stereo assumes a distant viewer."""
 
-    kind: Literal["orthographic", "perspective"] = "orthographic"
-    width: int = Field(128, ge=8, le=8192)
-    height: int = Field(128, ge=8, le=8192)
+    kind: Literal["orthographic", "perspective"] = Field("orthographic", description="projection")
+    width: int = Field(128, ge=8, le=8192, description="frame width (px)")
+    height: int = Field(128, ge=8, le=8192, description="frame height (px)")
     # Half-extent of the orthographic view (world units); object fits in radius 1.
-    extent: float = Field(1.05, gt=0)
-    fov_deg: float = Field(25.0, gt=0, lt=170)
-    distance: float = Field(5.0, gt=1.0)
+    extent: float = Field(1.05, gt=0, description="orthographic: half-extent of the view (scene units; "
+                                                  "the object fits in radius 1)")
+    fov_deg: float = Field(25.0, gt=0, lt=170, description="perspective: field of view (deg)")
+    distance: float = Field(5.0, gt=1.0, description="camera distance from the origin (scene units)")
 
 
 # --------------------------------------------------------------------- lights
@@ -149,10 +150,10 @@ class SplitSpec(FrozenModel):
 
 # ------------------------------------------------------------------ integrator
 class IntegratorSpec(FrozenModel):
-    kind: Literal["path", "direct"] = "path"
-    max_depth: int = Field(6, ge=2, le=64)
-    spp: int = Field(32, ge=1, le=65536)
-    seed: int = Field(0, ge=0)
+    kind: Literal["path", "direct"] = Field("path", description="Mitsuba integrator")
+    max_depth: int = Field(6, ge=2, le=64, description="longest light path (bounces + 1)")
+    spp: int = Field(32, ge=1, le=65536, description="samples per pixel (per light)")
+    seed: int = Field(0, ge=0, description="sampler seed (set per frame by the sampler)")
 
 
 # ---------------------------------------------------------------------- scene
