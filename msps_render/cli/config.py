@@ -1,11 +1,13 @@
 """Config commands: `msps config show | schema`."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import List, Optional
 
 import typer
 
+from msps_render.atomic import atomic_write
 from msps_render.cli.app import app, clean_errors
 from msps_render.errors import InputError
 
@@ -44,8 +46,6 @@ def show_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.to
              as_json: bool = typer.Option(False, "--json", help="plan and estimates as JSON")):
     """Print the resolved config (every key, as TOML) and the planned work: conditions, shards,
     frames, and estimated patches, render time and disk. Renders no dataset."""
-    import json
-
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.describe import describe, plan_text
 
@@ -69,8 +69,6 @@ def schema_cmd(out: Optional[Path] = typer.Option(None, "--out", "-o",
     if out is None:
         typer.echo(text, nl=False)
         return
-    from msps_render.atomic import atomic_write
-
     if out.is_dir():
         raise InputError(out, "is a directory; give a file path")
     with atomic_write(out) as tmp:

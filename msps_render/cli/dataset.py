@@ -93,12 +93,17 @@ def inspect_cmd(path: Path = typer.Argument(..., help="dataset directory or shar
 @clean_errors
 def preview_cmd(root: Path = typer.Argument(..., help="dataset directory"),
                 out: Path = typer.Option(..., "--out", "-o", help="PNG contact sheet"),
-                n: int = typer.Option(8, help="number of samples")):
-    """Contact sheet (images, normal maps, masks) + slant/material/coverage distributions."""
+                n: int = typer.Option(8, min=1, help="number of samples (whole frames if stored, else patches)"),
+                tile: int = typer.Option(160, min=160, max=1024, help="tile size in px (image, normal, mask)"),
+                cols: int = typer.Option(2, min=1, max=16, help="samples per row"),
+                labels: bool = typer.Option(True, "--labels/--no-labels",
+                                            help="label each sample: shard/frame, shape, materials, condition")):
+    """Contact sheet of labelled samples (image | normal map | mask) + slant/material/coverage distributions.
+    Deterministic: the same dataset gives the same PNG."""
     from msps_render.pipeline.outdir import check_writable
     from msps_render.pipeline.preview import preview_dataset
 
     if not (root / "dataset.json").is_file():
         raise InputError(root, "no dataset.json here")
     check_writable(out.parent)
-    typer.echo(f"wrote {preview_dataset(root, out, n)}")
+    typer.echo(f"wrote {preview_dataset(root, out, n, tile=tile, cols=cols, labels=labels)}")

@@ -19,15 +19,27 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import shutil
 import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
 
 from msps_render.dataset.sizes import raw_patch_bytes, storage_bytes
+from msps_render.patches import patchify
 from msps_render.pipeline.config import DatasetConfig
-from msps_render.pipeline.plan import Task, plan
+from msps_render.pipeline.config_toml import config_toml
+from msps_render.pipeline.execute import WorkerSettings, render_shard
+from msps_render.pipeline.plan import Task, frame_rngs, frame_seed, plan
+from msps_render.pipeline.validate import validate_inputs
+from msps_render.render.mask import scene_mask
+from msps_render.render.memory import release_frame_memory
+from msps_render.render.variant import activate, resolve_variant
+from msps_render.scene.sample import sample_scene
 
 
 @dataclass
@@ -87,8 +99,6 @@ def describe(cfg: DatasetConfig, probe: int = 2, variant: str | None = None,
              threads: int | None = None, masks: int = 32) -> Description:
     """The resolved config, the plan and (probe > 0) estimates: time and disk measured on `probe`
     rendered frames, patches counted on the masks of `masks` frames (at least the probe's)."""
-    from msps_render.pipeline.config_toml import config_toml
-
     d = cfg.dataset
     tasks = plan(cfg)
     conds = []
@@ -124,16 +134,6 @@ def mask_counts(cfg: DatasetConfig, tasks: list[Task], m: int, variant: str,
                 threads: int | None) -> dict[str, list[int]]:
     """{condition: patch count of each sampled frame}: `m` frames of the plan (same seeds as the
     render, picked like `probe_frames`), their masks from one ray per pixel (no rendering)."""
-    from types import SimpleNamespace
-
-    import numpy as np
-
-    from msps_render.patches import patchify
-    from msps_render.pipeline.plan import frame_rngs, frame_seed
-    from msps_render.render.mask import scene_mask
-    from msps_render.render.memory import release_frame_memory
-    from msps_render.scene.sample import sample_scene
-
     F = cfg.dataset.frames_per_shard
     out: dict[str, list[int]] = {}
     by_name = {t.name: t for t in tasks}
@@ -153,10 +153,6 @@ def mask_counts(cfg: DatasetConfig, tasks: list[Task], m: int, variant: str,
 
 def _probe(cfg: DatasetConfig, tasks: list[Task], n: int, variant: str | None,
            threads: int | None, masks: int) -> Estimate:
-    from msps_render.pipeline.execute import WorkerSettings, render_shard
-    from msps_render.pipeline.validate import validate_inputs
-    from msps_render.render.variant import activate, resolve_variant
-
     validate_inputs(cfg, getattr(cfg, "_source", None))
     d = cfg.dataset
     C = len(cfg.conditions())
@@ -219,8 +215,6 @@ def patch_estimate(counts: dict[str, list[int]], frames: dict[str, int]) -> tupl
     population correction applies: 0 when every frame was sampled); None when a condition
     has a single sample and no other samples give a spread.
     """
-    import math
-
     pooled = [n for v in counts.values() for n in v]
     total, var, exact, unknown = 0.0, 0.0, True, False
     for cond, N in frames.items():

@@ -1,0 +1,65 @@
+"""Labelled samples of a shard for contact sheets (`msps preview`): whole frames if stored, else patches."""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from msps_render.dataset import schema as K
+from msps_render.dataset.reader import n_whole_frames, open_shard, read_whole_frame, shard_errors
+
+
+@dataclass
+class Sample:
+    image: np.ndarray  # (H, W, 3) float32 linear
+    normal: np.ndarray  # (H, W, 3) float32
+    mask: np.ndarray  # (H, W) bool
+    shard: str  # file name
+    frame: int  # frame index in the shard
+    yx: tuple[int, int] | None  # patch origin in the frame; None for a whole frame
+    shape_kind: str  # blobby, mesh, primitive, procedural, sphere
+    object: str  # shape name (blob003, torus, creased, the mesh's file stem, ...)
+    materials: list[str]
+    condition: str  # '' without a sweep
+
+
+def _shape_kind(scene_json: str) -> str:
+    try:
+        return str(json.loads(scene_json)["shape"]["kind"])
+    except (ValueError, KeyError, TypeError):
+        return "?"
+
+
+def shard_samples(path: str | Path, n: int, rng: np.random.Generator) -> tuple[list[Sample], list[float]]:
+    """Up to `n` samples of a shard (its first whole frames if stored, else `n` random patches in
+    shard order) and the mask coverage of every patch of the shard."""
+    path = Path(path)
+    with shard_errors(path), open_shard(path) as h:
+        msk = h[K.PATCH_MASK][()]
+        N = len(msk)
+        cover = msk.reshape(N, -1).mean(1).tolist() if N else []
+        if n <= 0:
+            return [], cover
+        objs = h[K.FRAME_OBJECT].asstr()[()]
+        mats = h[K.FRAME_MATERIALS].asstr()[()]
+        conds = h[K.FRAME_CONDITION].asstr()[()]
+        scenes = h[K.FRAME_SCENE_JSON].asstr()[()]
+
+        def sample(image, normal, mask, f, yx):
+            return Sample(np.asarray(image, np.float32), np.asarray(normal, np.float32), np.asarray(mask, bool),
+                          path.name, int(f), yx, _shape_kind(scenes[f]), str(objs[f]),
+                          [m for m in str(mats[f]).split(";") if m], str(conds[f]))
+
+        out = []
+        if n_whole_frames(h):
+            for i in range(min(n_whole_frames(h), n)):
+                out.append(sample(*read_whole_frame(h, i), i, None))
+        elif N:
+            fidx = h[K.PATCH_FRAME_INDEX][()]
+            yx = h[K.PATCH_YX][()]
+            for i in sorted(rng.choice(N, size=min(N, n), replace=False)):
+                out.append(sample(h[K.PATCH_IMAGE][i], h[K.PATCH_NORMAL][i], msk[i], fidx[i],
+                                  (int(yx[i][0]), int(yx[i][1]))))
+        return out, cover
