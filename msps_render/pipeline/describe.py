@@ -57,6 +57,8 @@ class Estimate:
     probe_frames: int
     probe_from: list[str]  # e.g. ["shard-00000.h5 frames 0-1 (slant_deg=20)"]
     variant: str
+    probe_conditions: int  # sweep conditions the rendered probe covered
+    mask_conditions: int  # sweep conditions the mask count covered
     mask_frames: int  # frames whose masks were computed (one ray per pixel) to count patches
     mask_seconds: float
     patches_per_frame: list[int]  # of each mask frame
@@ -200,6 +202,7 @@ def _probe(cfg: DatasetConfig, tasks: list[Task], n: int, variant: str | None,
     bps = other / len(picks)
     disk = patches * raw1 * factor + n_frames * bpf + len(tasks) * bps
     return Estimate(probe_frames=frames_done, probe_from=probe_from, variant=variant,
+                    probe_conditions=len({by_name[p].condition for p in picks}), mask_conditions=len(per_cond),
                     mask_frames=sum(len(v) for v in per_cond.values()), mask_seconds=mask_s,
                     patches_per_frame=[n for v in per_cond.values() for n in v], patches=patches,
                     patches_margin=margin, exact=exact, seconds_per_frame=spf, render_seconds=spf * n_frames,
@@ -279,11 +282,18 @@ def plan_text(desc: Description) -> str:
     if e.exact:
         L.append(f"# patches: {e.patches} (exact: counted on the masks of all {e.mask_frames} frames)")
     else:
-        pm = f" +- {e.patches_margin} (2 standard errors)" if e.patches_margin is not None else \
-            " (spread unknown: one frame; raise --masks)"
+        if e.patches_margin is None:
+            pm = " (spread unknown: one frame; raise --masks)"
+        elif e.patches_margin == 0:
+            pm = " (every sampled frame gave the same count)"
+        else:
+            pm = f" +- {e.patches_margin} (2 standard errors)"
         lo, hi = min(e.patches_per_frame), max(e.patches_per_frame)
         L.append(f"# patches: ~{e.patches}{pm}, from the masks of {e.mask_frames} of the {desc.n_frames} frames "
                  f"(same seeds; one ray per pixel, {e.mask_seconds:.1f} s): {lo}..{hi} patches per frame")
+    if e.probe_conditions < desc.n_conditions or e.mask_conditions < desc.n_conditions:
+        L.append(f"# (the probe rendered {e.probe_conditions} and counted masks of {e.mask_conditions} of the "
+                 f"{desc.n_conditions} conditions; the others are assumed alike: raise --probe / --masks)")
     L.append(f"# render time: ~{_duration(e.render_seconds)} in one process "
              f"({e.seconds_per_frame:.2f} s/frame measured on this machine now; the first probe frame includes "
              f"kernel compilation; divide by --workers on idle cores); the probe took {e.probe_wall_seconds:.1f} s")
