@@ -92,6 +92,23 @@ def test_show_cli_prints_every_key_as_toml_that_reads_back(tmp_path):
     assert config_hash(back) == config_hash(load_config(cfg_path, ["camera.width=48"]))
 
 
+def test_show_json_and_help(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from msps_render.cli import app
+
+    runner = CliRunner()
+    r = runner.invoke(app, ["config", "show", str(write(tmp_path, TINY + SWEEP)), "--probe", "0", "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.output)
+    assert (d["n_shards"], d["n_frames"], d["estimate"]) == (6, 18, None)
+    for args in (["config", "-h"], ["config", "show", "-h"], ["config", "schema", "-h"]):
+        r = runner.invoke(app, args)
+        assert r.exit_code == 0 and "Usage" in r.output, (args, r.output)
+
+
 def test_show_bad_input_one_line_and_nothing_written(tmp_path):
     tmpdir = tmp_path / "tmp"
     tmpdir.mkdir()

@@ -12,6 +12,7 @@ from msps_render.cli.app import app, clean_errors
 from msps_render.errors import InputError
 
 config_app = typer.Typer(add_completion=False, no_args_is_help=True,
+                         context_settings={"help_option_names": ["-h", "--help"]},
                          help="Inspect configs: the resolved config and its plan, the reference of every key.")
 app.add_typer(config_app, name="config")
 

@@ -174,7 +174,9 @@ def _probe(cfg: DatasetConfig, tasks: list[Task], n: int, variant: str | None,
         for name, m in picks.items():
             t = by_name[name]
             tcfg = json.loads(t.config_json)
-            tcfg["dataset"]["frames_per_shard"] = m  # the shard's first m frames: same seeds as the render
+            # the shard's first m frames: same seeds as the render (with shape.mesh_order = 'cycle' a
+            # probe in a later shard may draw another mesh; patch counts come from mask_counts, exact)
+            tcfg["dataset"]["frames_per_shard"] = m
             probe_task = dataclasses.replace(t, config_json=json.dumps(tcfg, sort_keys=True, separators=(",", ":")))
             info = render_shard(probe_task, WorkerSettings(out_dir=str(tmp), variant=variant, threads=threads))
             sizes = storage_bytes(tmp / "shards" / name)
