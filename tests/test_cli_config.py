@@ -158,8 +158,8 @@ def test_estimates_against_real_render(tiny_render, tmp_path, monkeypatch):
     # estimate came out 7% low); 20% leaves room for that without hiding a wrong model
     # (forgetting the metadata or the compression would be off by > 50%)
     assert abs(e.disk_bytes - real_disk) <= 0.20 * real_disk, (e.disk_bytes, real_disk)
-    assert e.probe_frames == 1 and e.seconds_per_frame > 0 and e.render_seconds == pytest.approx(
-        6 * e.seconds_per_frame)
+    assert e.probe_frames == 1 and e.seconds_per_frame > 0 and e.startup_seconds >= 0
+    assert e.render_seconds == pytest.approx(e.startup_seconds + 6 * e.seconds_per_frame)
 
     # 2 of 6 frames counted: the estimate states a margin (2 standard errors) and the real
     # count lies inside it (deterministic: the seeds are fixed)

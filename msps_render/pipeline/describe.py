@@ -9,8 +9,9 @@ temporary directory, measures them and deletes them:
 * patches: counted on the masks of `masks` frames of the plan (same seeds; one
   ray per pixel, no light transport, so cheap): frames x the sample mean per
   condition, +- 2 standard errors; exact when every frame is counted;
-* render time: the probe's mean render seconds per frame x frames, one process
-  (the first probe frame includes Mitsuba's kernel compilation);
+* render time: the probe's mean render seconds per frame (after one uncounted
+  warm-up frame) x frames, + the warm-up's extra (kernel compilation, once per
+  worker), one process;
 * disk: raw bytes per patch from the storage dtypes x a compression factor
   measured on the probe shard, plus the measured bytes per frame record and per
   shard (HDF5 metadata).
@@ -65,8 +66,9 @@ class Estimate:
     patches: int  # estimate for the whole dataset
     patches_margin: int | None  # +- 2 standard errors (None: spread unknown)
     exact: bool  # every frame of the dataset was counted
-    seconds_per_frame: float  # render seconds (mean over probe frames)
-    render_seconds: float  # whole dataset, one process
+    seconds_per_frame: float  # render seconds (mean over probe frames, after a warm-up frame)
+    startup_seconds: float  # warm-up frame minus a frame: kernel compilation, once per worker
+    render_seconds: float  # whole dataset, one process: startup + frames x seconds_per_frame
     probe_wall_seconds: float  # what the probe itself took (Mitsuba start-up included)
     raw_bytes_per_patch: int
     compression_factor: float  # stored / raw bytes of the probe's patch arrays
@@ -169,16 +171,16 @@ def _probe(cfg: DatasetConfig, tasks: list[Task], n: int, variant: str | None,
     raw1 = raw_patch_bytes(d.patches.size, d.storage.image_dtype, d.storage.normal_dtype)
     probe_from = []
     tmp = Path(tempfile.mkdtemp(prefix="msps-probe-"))
+    ws = WorkerSettings(out_dir=str(tmp), variant=variant, threads=threads)
     try:
         (tmp / "shards").mkdir()
+        # warm-up: frame 0 once, not counted (Mitsuba compiles its kernels on the first render of a
+        # process; a worker pays that once, so it is a per-worker cost, not a per-frame one)
+        warm_s = render_shard(_first_frames(tasks[0], 1), ws)["render_seconds"]
+        (tmp / "shards" / tasks[0].name).unlink()
         for name, m in picks.items():
             t = by_name[name]
-            tcfg = json.loads(t.config_json)
-            # the shard's first m frames: same seeds as the render (with shape.mesh_order = 'cycle' a
-            # probe in a later shard may draw another mesh; patch counts come from mask_counts, exact)
-            tcfg["dataset"]["frames_per_shard"] = m
-            probe_task = dataclasses.replace(t, config_json=json.dumps(tcfg, sort_keys=True, separators=(",", ":")))
-            info = render_shard(probe_task, WorkerSettings(out_dir=str(tmp), variant=variant, threads=threads))
+            info = render_shard(_first_frames(t, m), ws)
             sizes = storage_bytes(tmp / "shards" / name)
             render_s += info["render_seconds"]
             raw += raw1 * info["n_patches"]
@@ -200,6 +202,7 @@ def _probe(cfg: DatasetConfig, tasks: list[Task], n: int, variant: str | None,
     n_frames = len(tasks) * F
     factor = stored_patches / raw if raw else 1.0
     spf = render_s / frames_done
+    startup = max(0.0, warm_s - spf)
     bpf = stored_frames / frames_done
     bps = other / len(picks)
     disk = patches * raw1 * factor + n_frames * bpf + len(tasks) * bps
@@ -207,9 +210,18 @@ def _probe(cfg: DatasetConfig, tasks: list[Task], n: int, variant: str | None,
                     probe_conditions=len({by_name[p].condition for p in picks}), mask_conditions=len(per_cond),
                     mask_frames=sum(len(v) for v in per_cond.values()), mask_seconds=mask_s,
                     patches_per_frame=[n for v in per_cond.values() for n in v], patches=patches,
-                    patches_margin=margin, exact=exact, seconds_per_frame=spf, render_seconds=spf * n_frames,
+                    patches_margin=margin, exact=exact, seconds_per_frame=spf, startup_seconds=startup,
+                    render_seconds=startup + spf * n_frames,
                     probe_wall_seconds=wall, raw_bytes_per_patch=raw1, compression_factor=factor,
                     bytes_per_frame=bpf, bytes_per_shard=bps, disk_bytes=int(round(disk)))
+
+
+def _first_frames(t: Task, m: int) -> Task:
+    """Task `t` cut to its first `m` frames: the same seeds as the render.  (With shape.mesh_order =
+    'cycle' a probe in a later shard may draw another mesh; patch counts come from `mask_counts`.)"""
+    tcfg = json.loads(t.config_json)
+    tcfg["dataset"]["frames_per_shard"] = m
+    return dataclasses.replace(t, config_json=json.dumps(tcfg, sort_keys=True, separators=(",", ":")))
 
 
 def patch_estimate(counts: dict[str, list[int]], frames: dict[str, int]) -> tuple[int, int | None, bool]:
@@ -296,9 +308,10 @@ def plan_text(desc: Description) -> str:
     if e.probe_conditions < desc.n_conditions or e.mask_conditions < desc.n_conditions:
         L.append(f"# (the probe rendered {e.probe_conditions} and counted masks of {e.mask_conditions} of the "
                  f"{desc.n_conditions} conditions; the others are assumed alike: raise --probe / --masks)")
-    L.append(f"# render time: ~{_duration(e.render_seconds)} in one process "
-             f"({e.seconds_per_frame:.2f} s/frame measured on this machine now; the first probe frame includes "
-             f"kernel compilation; divide by --workers on idle cores); the probe took {e.probe_wall_seconds:.1f} s")
+    L.append(f"# render time: ~{_duration(e.render_seconds)} in one process: {e.seconds_per_frame:.2f} s/frame "
+             f"measured now on this machine after a warm-up frame, + {e.startup_seconds:.1f} s kernel compilation "
+             f"once per worker (with --workers W on W idle cores: ~1/W of the frame time); the probe took "
+             f"{e.probe_wall_seconds:.1f} s")
     L.append(f"# disk: ~{_bytes(e.disk_bytes)} ({e.raw_bytes_per_patch} B/patch raw from the dtypes x "
              f"{e.compression_factor:.2f} measured {st['compression']} compression, "
              f"+ {_bytes(e.bytes_per_frame)}/frame record"
