@@ -13,29 +13,29 @@ from msps_render.errors import InputError
 
 
 class NetSection(StrictModel):
-    branch: int = Field(8, ge=1)
-    unet: tuple[int, int, int, int] = (24, 48, 64, 96)
-    pcn_branch: int = Field(32, ge=1)
-    pcn: tuple[int, ...] = (64, 64, 32, 32)
-    mode: Literal["dual", "scn", "pcn"] = "dual"
+    branch: int = Field(8, ge=1, description="features per colour-channel branch (SCN)")
+    unet: tuple[int, int, int, int] = Field((24, 48, 64, 96), description="SCN U-Net widths at 40, 20, 10, 5 px")
+    pcn_branch: int = Field(32, ge=1, description="width of each PCN input branch")
+    pcn: tuple[int, ...] = Field((64, 64, 32, 32), description="PCN per-pixel layer widths after the merge")
+    mode: Literal["dual", "scn", "pcn"] = Field("dual", description="both cues (dual) or one network alone")
 
 
 class TrainSection(StrictModel):
-    batch_size: int = Field(24, ge=1)
-    lr: float = Field(1e-3, gt=0)
-    betas: tuple[float, float] = (0.9, 0.999)
-    epochs: int = Field(20, ge=1)
-    max_steps: int = Field(100000, ge=1)
-    max_minutes: float | None = Field(None, gt=0)
-    schedule: Literal["constant", "cosine"] = "cosine"
-    val_every: int = Field(500, ge=1)
-    val_max_patches: int = Field(2000, ge=1)
-    seed: int = 0
-    num_workers: int = Field(0, ge=0)
+    batch_size: int = Field(24, ge=1, description="patches per step")
+    lr: float = Field(1e-3, gt=0, description="Adam learning rate")
+    betas: tuple[float, float] = Field((0.9, 0.999), description="Adam betas")
+    epochs: int = Field(20, ge=1, description="passes over the training data (the first budget reached stops)")
+    max_steps: int = Field(100000, ge=1, description="optimizer steps budget")
+    max_minutes: float | None = Field(None, gt=0, description="wall-clock budget (min); unset: none")
+    schedule: Literal["constant", "cosine"] = Field("cosine", description="learning-rate schedule")
+    val_every: int = Field(500, ge=1, description="validate and record metrics every N steps")
+    val_max_patches: int = Field(2000, ge=1, description="validation patches per check")
+    seed: int = Field(0, description="seed of initialisation and data order")
+    num_workers: int = Field(0, ge=0, description="DataLoader worker processes")
 
 
 class ModelConfig(StrictModel):
-    preset: str = "custom"
+    preset: str = Field("custom", description="preset name (recorded in checkpoints)")
     net: NetSection = NetSection()
     train: TrainSection = TrainSection()
 
