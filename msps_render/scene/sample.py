@@ -115,8 +115,8 @@ class LightsConfig(StrictModel):
                                    description="azimuth of each light around the view axis (deg), one per "
                                                "colour channel")
     crosstalk: list[list[float]] = Field(default_factory=lambda: PAPER_CROSSTALK.tolist(),
-                                         description="3x3 matrix: row = light, column = camera channel "
-                                                     "response (rgb mode)")
+                                         description="3x3 matrix, column k = the camera's RGB response "
+                                                     "to light k (rgb mode)")
     irradiance: float = Field(3.0, gt=0.0, description="irradiance of each light on a surface facing it "
                                                        "(linear units)")
     distance: float | None = Field(None, gt=1.0, description="point lights: distance from the origin "
@@ -139,7 +139,8 @@ class LightsConfig(StrictModel):
 
 class EnvironmentConfig(StrictModel):
     enabled: bool = Field(False, description="add environment (ambient) light")
-    source: str = Field("procedural", description="'procedural' (seeded sky) or an env-map file (.exr/.hdr)")
+    source: str = Field("procedural", description="'procedural' (seeded sky) or an env-map file "
+                                                                  "(.exr, .hdr)")
     ratio: float = Field(0.1, ge=0.0, description="env irradiance / coloured-light irradiance")
     ratio_range: tuple[float, float] | None = Field(
         None, description="draw the ratio per frame uniformly in [lo, hi] (robust corpora); overrides ratio")
