@@ -140,7 +140,7 @@ def version():
 
 def _mount_subapps() -> None:
     """Pipeline and model commands live in their own modules (optional parts)."""
-    for mod in ("msps_render.pipeline.cli", "msps_render.models.cli"):
+    for mod in ("msps_render.pipeline.cli", "msps_render.models.cli", "msps_render.workflows_cli"):
         try:
             sub = __import__(mod, fromlist=["app"]).app
         except ImportError:
