@@ -127,6 +127,9 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
     opt = torch.optim.Adam(model.parameters(), lr=t_cfg.lr, betas=tuple(t_cfg.betas))
     state = {"step": 0, "epoch": 0, "batch_in_epoch": 0, "elapsed": 0.0, "best_val": float("inf")}
     dhash = data_hash(data)
+    from msps_render.calibration import training_lights  # the lights predict compares against
+
+    train_lights = training_lights(data)
     last = out / "last.pt"
     if resume:
         if not last.is_file():
@@ -168,7 +171,7 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
         save_checkpoint(out / name, model, cfg, {
             "optimizer": opt.state_dict(), "state": dict(state),
             "torch_rng": torch.get_rng_state(), "data_hash": dhash, "n_params": n_params,
-            "val_mae_deg": val_mae})
+            "val_mae_deg": val_mae, "train_lights": train_lights})
 
     model.train()
     done = False
@@ -250,7 +253,7 @@ def plot_metrics(jsonl: Path, png: Path) -> Path | None:
 def export_checkpoint(src: str | Path, dst: str | Path, **info) -> Path:
     """A slim copy for shipping: weights, config and provenance, without optimizer/RNG state."""
     _, cfg, ck = load_checkpoint(src)
-    keep = {k: ck[k] for k in ("data_hash", "n_params", "val_mae_deg", "state") if k in ck}
+    keep = {k: ck[k] for k in ("data_hash", "n_params", "val_mae_deg", "state", "train_lights") if k in ck}
     model = DualCueNet(cfg.net_config())
     model.load_state_dict(ck["model"])
     return save_checkpoint(Path(dst), model, cfg, {**keep, **info})
