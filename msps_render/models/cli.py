@@ -68,12 +68,14 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
 
 
 @app.command("predict")
-def predict_cmd(image: Path = typer.Argument(..., help="EXR/HDR/PNG/NPY image (linear RGB)"),
+def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (linear RGB) or "
+                                               "PNG/JPG (sRGB-encoded, decoded to linear; alpha dropped)"),
                 out: Path = typer.Option(..., help="output path stem (writes .npy and .png)"),
                 checkpoint: Optional[Path] = typer.Option(None, help="checkpoint (default: shipped cpu model)"),
                 method: str = typer.Option("net", help="net or lambertian"),
                 mask: Optional[Path] = typer.Option(None, help="mask image (default: non-zero pixels)"),
-                calibration: Optional[Path] = typer.Option(None, help="JSON with light_dirs / crosstalk"),
+                calibration: Optional[Path] = typer.Option(None, help="calibration JSON (light_dirs or slant_deg/"
+                                                "tilts_deg, crosstalk; docs/recipes.md), e.g. from `msps compose`"),
                 light_dirs: Optional[str] = typer.Option(None, help="JSON 3x3, rows toward the lights"),
                 crosstalk: Optional[str] = typer.Option(None, help="JSON 3x3 crosstalk matrix")):
     """Normal map of a whole image (overlapping 40x40 tiles, blended) or by the Lambertian baseline."""

@@ -78,6 +78,8 @@ def read_inputs(image_path: str | Path, mask_path: str | Path | None) -> tuple[n
     from msps_render.io.images import read_image
 
     img = read_image(image_path)
+    if img.shape[-1] == 4:  # RGBA: the alpha channel carries no radiance
+        img = np.ascontiguousarray(img[..., :3])
     if img.shape[-1] != 3:
         raise InputError(image_path, f"expected a 3-channel RGB image, got {img.shape[-1]} channel(s)")
     if mask_path:
