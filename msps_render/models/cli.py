@@ -50,19 +50,20 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
              checkpoint: Optional[Path] = typer.Option(None, help="checkpoint (default: models/dualcue-cpu.pt)"),
              method: str = typer.Option("net", help="net or lambertian"),
              max_patches: Optional[int] = typer.Option(None, help="limit per condition")):
-    """Angular-error statistics, SSIM, per-object table, robustness (metrics.json + plots)."""
+    """Angular-error statistics, SSIM, per-object table (whole frames), robustness: metrics.json,
+    error_hist.png, per_object.csv/.png (frames stored), robustness.png (sweeps)."""
 
     def go():
         from msps_render.models.evaluate import evaluate
         from msps_render.pipeline.outdir import check_writable
 
         check_writable(out, "report")
+        from msps_render.models.report import summary_lines
+
         r = evaluate(data, out, checkpoint=checkpoint, method=method, max_patches=max_patches)
-        for cond, v in r["conditions"].items():
-            p = v["patches"]
-            typer.echo(f"{cond or 'all'}: MAE {p['mae_deg']:.2f} deg, median {p['median_deg']:.2f}, "
-                       f"<10deg {p['pct_under_10']:.1f}%, SSIM {p['ssim']:.4f} ({p['n_patches']} patches)")
-        typer.echo(f"wrote {out / 'metrics.json'}")
+        for line in summary_lines(r):
+            typer.echo(line)
+        typer.echo("wrote " + ", ".join(r["files"]))
 
     _run(go)
 
