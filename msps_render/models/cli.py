@@ -78,7 +78,9 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
                 calibration: Optional[Path] = typer.Option(None, help="calibration JSON (light_dirs or slant_deg/"
                                                 "tilts_deg, crosstalk; docs/recipes.md), e.g. from `msps compose`"),
                 light_dirs: Optional[str] = typer.Option(None, help="JSON 3x3, rows toward the lights"),
-                crosstalk: Optional[str] = typer.Option(None, help="JSON 3x3 crosstalk matrix")):
+                crosstalk: Optional[str] = typer.Option(None, help="JSON 3x3 crosstalk matrix"),
+                linear: bool = typer.Option(False, "--linear", help="PNG values are linear radiance (e.g. "
+                                            "`msps export --format png16`), not sRGB")):
     """Normal map of a whole image (overlapping 40x40 tiles, blended) or by the Lambertian baseline."""
 
     def go():
@@ -86,7 +88,8 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
         from msps_render.pipeline.outdir import check_writable
 
         check_writable(out.parent)
-        files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk)
+        files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk,
+                             linear=linear)
         typer.echo("wrote " + ", ".join(map(str, files)))
 
     _run(go)

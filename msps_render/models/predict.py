@@ -74,10 +74,17 @@ def load_calibration(path: str | Path | None, light_dirs: str | None, crosstalk:
     return L, M
 
 
-def read_inputs(image_path: str | Path, mask_path: str | Path | None) -> tuple[np.ndarray, np.ndarray]:
+def read_inputs(image_path: str | Path, mask_path: str | Path | None,
+                linear: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """PNG keeps 16 bits (Pillow would truncate them) and is sRGB-decoded unless `linear`."""
     from msps_render.io.images import read_image
 
-    img = read_image(image_path)
+    if Path(image_path).suffix.lower() == ".png":
+        from msps_render.compose import read_photo
+
+        img = read_photo(Path(image_path), srgb=not linear).astype(np.float32)
+    else:
+        img = read_image(image_path)
     if img.shape[-1] == 4:  # RGBA: the alpha channel carries no radiance
         img = np.ascontiguousarray(img[..., :3])
     if img.shape[-1] != 3:
@@ -93,7 +100,8 @@ def read_inputs(image_path: str | Path, mask_path: str | Path | None) -> tuple[n
 
 def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | None = None,
                  method: str = "net", mask: str | Path | None = None, calibration: str | Path | None = None,
-                 light_dirs: str | None = None, crosstalk: str | None = None, warn=None) -> list[Path]:
+                 light_dirs: str | None = None, crosstalk: str | None = None, warn=None,
+                 linear: bool = False) -> list[Path]:
     """Write OUT.npy (H, W, 3 normals) and OUT.png (visualisation).
 
     `warn(message)` (default: a 'warning: ...' line on stderr) hears when the Lambertian path assumes
@@ -103,7 +111,7 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
     from msps_render.preview import normal_to_rgb8
 
     warn = warn or _warn_stderr
-    img, mk = read_inputs(image, mask)
+    img, mk = read_inputs(image, mask, linear)
     calibrated = bool(calibration or light_dirs or crosstalk)
     L, M = load_calibration(calibration, light_dirs, crosstalk)  # validated on both paths
     if method == "lambertian":
