@@ -38,7 +38,7 @@ def sections() -> dict[str, list[tuple[str, str]]]:
     return out
 
 
-NEEDS = {"3": ["1"], "4": ["1"], "5": ["1"], "6": ["1", "5"]}  # recipes that use what others made
+NEEDS = {"3": ["1"], "4": ["1"], "5": ["1"], "6": ["1", "5"], "7": ["1"]}  # recipes that use what others made
 _done: dict[tuple[Path, str], list] = {}
 
 
@@ -85,7 +85,7 @@ def work(tmp_path_factory) -> Path:
 
 def test_every_recipe_has_runnable_blocks():
     s = sections()
-    assert set(s) == {"1", "2", "3", "4", "5", "6"}
+    assert set(s) == {"1", "2", "3", "4", "5", "6", "7", "8"}
     for n, blocks in s.items():
         assert any(lang in ("bash", "python") for lang, _ in blocks), f"recipe {n} runs nothing"
 
@@ -152,3 +152,23 @@ def test_recipe_6_compose_and_predict(work):
     comp = read_image(work / "composed" / "image.exr")
     rel = np.abs(comp * 3.0 - fr.image)[fr.mask].max() / fr.image.max()
     assert rel < 1e-3, rel  # three 16-bit quantisations (<= 1.5/65535 of the max) and text rounding
+
+
+def test_recipe_7_custom_scene_in_python(work):
+    from msps_render.io.images import read_image
+
+    runs = run_recipe("7", work)
+    assert "shape: mesh torus" in runs[0].stdout and "material" in runs[0].stdout
+    d = work / "my-scene"
+    img = read_image(d / "image.exr")
+    per = [read_image(d / f"light{k}.exr") for k in range(3)]
+    assert img.shape == (128, 128, 3)
+    np.testing.assert_allclose(sum(per), img, rtol=1e-5, atol=1e-6)  # image = sum of the per-light images
+
+
+def test_recipe_8_robustness_sweep(work):
+    runs = run_recipe("8", work)
+    rep = json.loads((work / "my-sweep-report" / "metrics.json").read_text())
+    assert set(rep["conditions"]) == {"slant_deg=20.0", "slant_deg=30.0", "slant_deg=40.0"}
+    assert rep["robustness"]["reference"] == "slant_deg=30.0" and rep["robustness"]["alpha"]["slant_deg=30.0"] == 0
+    assert (work / "my-sweep-report" / "robustness.png").is_file() and "robustness" in runs[-1].stdout
