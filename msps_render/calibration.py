@@ -99,7 +99,8 @@ def parse_calibration(d, source: str | Path = "<calibration>") -> tuple[np.ndarr
     from msps_render.scene.lights import PAPER_CROSSTALK, crosstalk_problem
 
     if not isinstance(d, dict):
-        raise InputError(source, f"calibration must be a JSON object, got {type(d).__name__}")
+        hint = ' (a 3x3 list of light directions goes in {"light_dirs": [...]})' if isinstance(d, list) else ""
+        raise InputError(source, f"calibration must be a JSON object, got {type(d).__name__}{hint}")
     for k in d:
         if k not in KEYS:
             raise InputError(source, f"unknown key '{k}'{closest(k, KEYS)} (known: {', '.join(KEYS)})")

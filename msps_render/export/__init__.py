@@ -59,7 +59,8 @@ def export_dataset(root: str | Path, fmt: str, out: str | Path, rerender: bool =
     check_new_out(out)
     with staged_dir(out) as stage:
         infos = []
-        for i, ef in enumerate(iter_export_frames(root, per_light=f.per_light, variant=dataset_variant(root))):
+        variant = dataset_variant(root) if f.per_light else None
+        for i, ef in enumerate(iter_export_frames(root, per_light=f.per_light, variant=variant)):
             info = ef.info()
             info.update(f.write_frame(ef, stage))
             infos.append(info)

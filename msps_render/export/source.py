@@ -116,11 +116,15 @@ def rerender_per_light(ef: ExportFrame, variant: str | None = None) -> tuple[np.
 
 
 def dataset_variant(root: str | Path) -> str | None:
-    """The Mitsuba variant a dataset was rendered with (re-renders use the same)."""
+    """The Mitsuba variant a dataset was rendered with, if this Mitsuba has it (else None: the best
+    available; `per_light_max_rel_deviation` in export.json then shows how far the re-render differs)."""
+    import mitsuba as mi
+
     from msps_render.pipeline.manifest import read_manifest
 
     m = read_manifest(root) or {}
-    return (m.get("versions") or {}).get("variant")
+    v = (m.get("versions") or {}).get("variant")
+    return v if v in mi.variants() else None
 
 
 def write_json(path: Path, d) -> Path:
