@@ -201,3 +201,44 @@ def test_calibration_accepted_shapes_agree(tmp_path):
             "--out", tmp_path / "pred")
     assert "bad.json: light_dirs must be a 3x3 array of numbers" in one_line_error(r)
     assert not (tmp_path / "pred.npy").exists()
+
+
+def test_trained_geometry_comes_from_the_checkpoint_or_the_model_card(tmp_path):
+    torch = pytest.importorskip("torch")  # noqa: F841
+    from msps_render.calibration import geometry_warnings, training_lights
+    from msps_render.models.net import DualCueNet
+    from msps_render.models.predict import predict_main
+    from msps_render.models.presets import load_model_config
+    from msps_render.models.train import save_checkpoint
+    from msps_render.pipeline.manifest import write_manifest
+    from msps_render.scene.lights import PAPER_CROSSTALK
+
+    # training_lights reads the data's manifests: a slant range widens the accepted slants
+    for name, lights in (("a", {"slant_deg": 30.0, "tilts_deg": [0, 120, 240], "crosstalk": PAPER_CROSSTALK.tolist()}),
+                         ("b", {"slant_deg": 30.0, "slant_range_deg": [20.0, 40.0], "tilts_deg": [0, 120, 240],
+                                "crosstalk": PAPER_CROSSTALK.tolist()})):
+        (tmp_path / name).mkdir()
+        write_manifest(tmp_path / name, {"config": {"scene": {"lights": lights}}})
+    tl = training_lights([tmp_path / "a", tmp_path / "b"])
+    assert tl["slant_deg"] == [20.0, 40.0] and tl["tilts_deg"] == [0, 120, 240]
+    L45 = np.array([direction_from_slant_tilt(45.0, t) for t in (0, 120, 240)])
+    L38 = np.array([direction_from_slant_tilt(38.0, t) for t in (0, 120, 240)])
+    assert geometry_warnings(L38, PAPER_CROSSTALK, tl) == []  # inside 20-40
+    assert geometry_warnings(L38, PAPER_CROSSTALK, None)  # model card: 30 +- 5
+    assert geometry_warnings(L45, PAPER_CROSSTALK, tl) == []  # 45 <= 40 + 5 deg tolerance
+    L50 = np.array([direction_from_slant_tilt(50.0, t) for t in (0, 120, 240)])
+    assert any("20-40 deg" in w for w in geometry_warnings(L50, PAPER_CROSSTALK, tl))
+    rot = np.array([direction_from_slant_tilt(30.0, t) for t in (60, 180, 300)])
+    assert any("tilts" in w for w in geometry_warnings(rot, PAPER_CROSSTALK, None))
+    L30 = np.array([direction_from_slant_tilt(30.0, t) for t in (0, 120, 240)])
+    assert geometry_warnings(L30, PAPER_CROSSTALK, None) == []
+    assert any("crosstalk differs" in w for w in geometry_warnings(L30, np.eye(3), None))
+    # predict reads train_lights from the checkpoint
+    cfg = load_model_config("cpu")
+    ck = save_checkpoint(tmp_path / "m.pt", DualCueNet(cfg.net_config()), cfg,
+                         {"train_lights": {**tl, "slant_deg": [40.0, 40.0], "source": "training data manifests"}})
+    np.save(tmp_path / "img.npy", np.ones((48, 48, 3), np.float32))
+    warns = []
+    predict_main(tmp_path / "img.npy", tmp_path / "p", checkpoint=ck, light_dirs=json.dumps(L30.tolist()),
+                 warn=warns.append)
+    assert any("differs from the 40 deg the network was trained for" in w for w in warns), warns
