@@ -7,14 +7,12 @@ RGB intensity, written DiLiGenT-style as 16-bit linear PNGs.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from cli_helpers import cli, one_line_error
 from msps_render.errors import InputError
 from msps_render.export.pngio import to_unorm, write_png
 from msps_render.render.render import analytic_sphere_normals
@@ -46,19 +44,6 @@ def make_capture(d: Path, lights=LIGHTS, seed=0, with_filenames=True) -> dict:
         (d / "filenames.txt").write_text("".join(nm + "\n" for nm in names))
     write_png(d / "mask.png", (mask * 255).astype(np.uint8))
     return {"normal": n, "mask": mask, "L": L, "E": E}
-
-
-def cli(*args) -> subprocess.CompletedProcess:
-    env = dict(os.environ, MSPS_THREADS="1")
-    return subprocess.run([sys.executable, "-m", "msps_render.cli", *map(str, args)], capture_output=True,
-                          text=True, env=env, timeout=300)
-
-
-def one_line_error(r) -> str:
-    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert r.returncode == 1, (r.returncode, r.stderr[-2000:])
-    assert len(lines) == 1 and lines[0].startswith("error: "), r.stderr[-2000:]
-    return lines[0]
 
 
 @pytest.mark.parametrize("crosstalk", [None, np.eye(3), np.array([[0.7, 0.2, 0.1], [0.1, 0.8, 0.1],

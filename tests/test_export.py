@@ -9,14 +9,12 @@ rounding.  Text files carry 9 significant digits, which round-trip float32
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from cli_helpers import cli, one_line_error
 from msps_render.errors import InputError
 
 TINY = """
@@ -72,19 +70,6 @@ def _light_rgb(root, fr):
 
     with h5py.File(Path(root) / "shards" / fr.shard, "r") as h:
         return h["frames/light_rgb"][fr.index].astype(np.float64)
-
-
-def cli(*args) -> subprocess.CompletedProcess:
-    env = dict(os.environ, MSPS_THREADS="1")
-    return subprocess.run([sys.executable, "-m", "msps_render.cli", *map(str, args)], capture_output=True,
-                          text=True, env=env, timeout=300)
-
-
-def one_line_error(r) -> str:
-    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert r.returncode == 1, (r.returncode, r.stderr[-2000:])
-    assert len(lines) == 1 and lines[0].startswith("error: "), r.stderr[-2000:]
-    return lines[0]
 
 
 def test_png16_and_exr_read_back_equal_the_shard(dataset, tmp_path):
