@@ -87,9 +87,16 @@ def render_scene(scene: Path = typer.Argument(..., help="SceneSpec JSON (see `ms
 
     spec = SceneSpec.load(scene)
     check_writable(out)
+    import time
+
+    c, n = spec.camera, len(spec.lights) + (spec.environment is not None)
+    typer.echo(f"rendering {scene}: {c.width}x{c.height}, {spec.integrator.spp} spp, {n} emitter(s) rendered "
+               "one by one ...")  # stdout: stderr is kept for the one error line
+    t0 = time.perf_counter()
     frame = render_frame(spec, variant=variant, threads=threads, per_light=per_light)
     files = frame.save(out)
-    typer.echo(f"rendered {scene} with {frame.variant} -> {out} ({len(files)} files)")
+    typer.echo(f"rendered {scene} with {frame.variant} in {time.perf_counter() - t0:.1f} s -> {out} "
+               f"({len(files)} files)")
 
 
 @app.command("sample-scene")
