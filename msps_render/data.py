@@ -4,7 +4,8 @@ h5py handles are opened lazily in whichever process reads (DataLoader workers
 fork/spawn after construction, and HDF5 handles must not cross processes).
 `__getitems__` reads a whole batch from each shard with one sorted
 fancy-index read per array, and `ShardBatchSampler` keeps each batch inside one
-shard, so random access costs one HDF5 read per batch instead of per patch.
+shard (two at a shard boundary), so random access costs one HDF5 read per batch
+instead of per patch.
 """
 from __future__ import annotations
 
@@ -187,20 +188,27 @@ def make_loader(ds: PatchDataset, batch_size: int, shuffle: bool = True, num_wor
 
 
 class ShardBatchSampler(Sampler[list[int]]):
-    """Batches drawn from one shard at a time, shards visited a few at a time.
+    """Batches of exactly `batch_size` patches, drawn a few shards at a time.
 
     Each epoch: shards in random order, taken in windows of `interleave`;
-    within a window every shard's patches are shuffled and cut into batches,
-    and the window's batches are shuffled together.  Why: a batch from one
-    shard needs one decoded shard, and a window of shards fits the dataset's
-    LRU of decoded shards, so every shard is decompressed once per epoch while
-    consecutive batches still come from different objects.
+    within a window every shard's patches are shuffled, laid end to end and
+    cut into batches, and the window's batches are shuffled together.  A
+    window's remainder (fewer than `batch_size`) is carried into the next
+    window, so every batch has the requested size — one at a shard boundary
+    spans two shards — except the epoch's last, which `drop_last` drops.  Why
+    windows: a batch needs one or two decoded shards, and a window (plus the
+    carried shard) fits the dataset's LRU of decoded shards, so every shard is
+    decompressed once per epoch while consecutive batches still come from
+    different objects.
     """
 
     def __init__(self, dataset: PatchDataset, batch_size: int, shuffle: bool = True, seed: int = 0,
                  drop_last: bool = False, interleave: int = 4):
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.ds, self.bs, self.shuffle, self.seed, self.drop_last = dataset, batch_size, shuffle, seed, drop_last
-        self.interleave = max(1, min(interleave, getattr(dataset, "decoded_shards", interleave)))
+        cap = max(1, getattr(dataset, "decoded_shards", interleave + 1) - 1)  # room for the carried shard
+        self.interleave = max(1, min(interleave, cap))
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
@@ -210,21 +218,23 @@ class ShardBatchSampler(Sampler[list[int]]):
         rng = np.random.default_rng([self.seed, self.epoch])
         n = len(self.ds.shards)
         order = rng.permutation(n) if self.shuffle else np.arange(n)
-        batches = []
+        batches, carry = [], np.zeros(0, np.int64)
         for w in range(0, n, self.interleave):
-            window = []
+            parts = [carry]
             for s in order[w:w + self.interleave]:
-                lo, hi = int(self.ds.offsets[s]), int(self.ds.offsets[s + 1])
-                idx = np.arange(lo, hi)
+                idx = np.arange(int(self.ds.offsets[s]), int(self.ds.offsets[s + 1]), dtype=np.int64)
                 if self.shuffle:
                     rng.shuffle(idx)
-                for b in range(0, len(idx), self.bs):
-                    chunk = idx[b:b + self.bs]
-                    if len(chunk) == self.bs or not self.drop_last:
-                        window.append(chunk.tolist())
+                parts.append(idx)
+            flat = np.concatenate(parts)
+            full = len(flat) // self.bs
+            window = [flat[b * self.bs:(b + 1) * self.bs].tolist() for b in range(full)]
+            carry = flat[full * self.bs:]
             if self.shuffle:
                 window = [window[i] for i in rng.permutation(len(window))]
             batches.extend(window)
+        if len(carry) and not self.drop_last:
+            batches.append(carry.tolist())
         return batches
 
     def __iter__(self) -> Iterator[list[int]]:

@@ -53,7 +53,8 @@ class Frame:
 
     # ------------------------------------------------------------------ output
     def save(self, out_dir: str | Path) -> list[Path]:
-        """Write EXR (image, normal, depth, mask) + PNG previews + scene.json."""
+        """Write EXR (image, normal, depth, mask) + PNG previews (image, normal, mask, part map; per light
+        with the image's exposure) + scene.json."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         written = [
@@ -64,10 +65,29 @@ class Frame:
             write_png(out / "normal.png", normal_to_rgb8(self.normal, self.mask)),
             write_png(out / "mask.png", (self.mask * 255).astype(np.uint8)),
         ]
+        written.append(write_png(out / "part.png", _part_rgb8(self.part)))
         if self.per_light is not None:
+            white = _white(self.image, self.mask)  # one exposure for all lights: brightnesses compare
             for k, img in enumerate(self.per_light):
                 written.append(write_exr(out / f"light{k}.exr", img))
+                written.append(write_png(out / f"light{k}.png", tonemap(img / white, None, 100.0)))
         p = out / "scene.json"
         p.write_text(self.spec.to_json())
         written.append(p)
         return written
+
+
+def _white(image: np.ndarray, mask: np.ndarray) -> float:
+    """The image's 99th-percentile object radiance (the exposure of `tonemap`), for shared exposures."""
+    ref = image[mask] if mask.any() else image.reshape(-1, image.shape[-1])
+    return max(float(np.percentile(ref, 99.0)), 1e-8) if ref.size else 1.0
+
+
+def _part_rgb8(part: np.ndarray) -> np.ndarray:
+    """Material part map: part k in colour k of a fixed palette, background black."""
+    palette = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
+                        [140, 86, 75], [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207]],
+                       np.uint8)
+    rgb = palette[np.mod(part.astype(np.int64), len(palette))]
+    rgb[part < 0] = 0
+    return rgb

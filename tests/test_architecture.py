@@ -19,7 +19,7 @@ def _loaded(code: str) -> list[str]:
 
 def test_training_side_imports_no_scene_render_or_mitsuba():
     mods = _loaded("import msps_render.data, msps_render.models.train, msps_render.models.evaluate, "
-                   "msps_render.models.predict, msps_render.cli")
+                   "msps_render.models.predict")
     bad = [m for m in mods if m.startswith(("msps_render.scene", "msps_render.render", "msps_render.pipeline",
                                              "mitsuba", "drjit"))]
     assert not bad, bad

@@ -1,11 +1,11 @@
 """`msps` command line: a thin typer layer over the pipeline stages, one module per command group
-(`scene`, `dataset`, `config`, `models`), all registered on the one `app` of `cli.app`.
+(`scene`, `dataset`, `config`, `models`, `workflows`), all registered on the one `app` of `cli.app`.
 
 Every command turns `InputError` into one line on stderr and exit code 1, and
 writes nothing until its inputs have been validated.  torch and Mitsuba are
 imported only inside the commands that need them.
 """
-from msps_render.cli import scene, dataset, config, models  # noqa: F401, I001  (registers the commands, in help order)
+from msps_render.cli import scene, dataset, config, models, workflows  # noqa: F401, I001  (registers the commands, in help order)
 from msps_render.cli.app import app, clean_errors, fail
 
 __all__ = ["app", "clean_errors", "fail", "main"]

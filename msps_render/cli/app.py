@@ -8,7 +8,23 @@ import typer
 from msps_render.errors import InputError, Interrupted, WorkerDied
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  context_settings={"help_option_names": ["-h", "--help"]},
                   help="Synthetic data for multispectral photometric stereo (Mitsuba 3) and the dual-cue network.")
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        import msps_render
+
+        typer.echo(f"msps {msps_render.__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(version: bool = typer.Option(False, "--version", "-V", is_eager=True, callback=_print_version,
+                                       help="print the toolkit version and exit "
+                                            "(`msps version`: with Mitsuba's)")) -> None:
+    """Synthetic data for multispectral photometric stereo (Mitsuba 3) and the dual-cue network."""
 
 
 def fail(msg: str, code: int = 1):

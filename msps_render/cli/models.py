@@ -43,33 +43,38 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
              checkpoint: Optional[Path] = typer.Option(None, help="checkpoint (default: models/dualcue-cpu.pt)"),
              method: str = typer.Option("net", help="net or lambertian"),
              max_patches: Optional[int] = typer.Option(None, help="limit per condition")):
-    """Angular-error statistics, SSIM, per-object table, robustness (metrics.json + plots)."""
+    """Angular-error statistics, SSIM, per-object table (whole frames), robustness: metrics.json,
+    error_hist.png, per_object.csv/.png (frames stored), robustness.png (sweeps)."""
     from msps_render.models.evaluate import evaluate
+    from msps_render.models.report import summary_lines
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out, "report")
     r = evaluate(data, out, checkpoint=checkpoint, method=method, max_patches=max_patches)
-    for cond, v in r["conditions"].items():
-        p = v["patches"]
-        typer.echo(f"{cond or 'all'}: MAE {p['mae_deg']:.2f} deg, median {p['median_deg']:.2f}, "
-                   f"<10deg {p['pct_under_10']:.1f}%, SSIM {p['ssim']:.4f} ({p['n_patches']} patches)")
-    typer.echo(f"wrote {out / 'metrics.json'}")
+    for line in summary_lines(r):
+        typer.echo(line)
+    typer.echo("wrote " + ", ".join(r["files"]))
 
 
 @app.command("predict")
 @clean_errors
-def predict_cmd(image: Path = typer.Argument(..., help="EXR/HDR/PNG/NPY image (linear RGB)"),
+def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (linear RGB) or "
+                                               "PNG/JPG (sRGB-encoded, decoded to linear; alpha dropped)"),
                 out: Path = typer.Option(..., help="output path stem (writes .npy and .png)"),
                 checkpoint: Optional[Path] = typer.Option(None, help="checkpoint (default: shipped cpu model)"),
                 method: str = typer.Option("net", help="net or lambertian"),
                 mask: Optional[Path] = typer.Option(None, help="mask image (default: non-zero pixels)"),
-                calibration: Optional[Path] = typer.Option(None, help="JSON with light_dirs / crosstalk"),
+                calibration: Optional[Path] = typer.Option(None, help="calibration JSON (light_dirs or slant_deg/"
+                                                "tilts_deg, crosstalk; docs/recipes.md), e.g. from `msps compose`"),
                 light_dirs: Optional[str] = typer.Option(None, help="JSON 3x3, rows toward the lights"),
-                crosstalk: Optional[str] = typer.Option(None, help="JSON 3x3 crosstalk matrix")):
+                crosstalk: Optional[str] = typer.Option(None, help="JSON 3x3 crosstalk matrix"),
+                linear: bool = typer.Option(False, "--linear", help="PNG values are linear radiance (e.g. "
+                                            "`msps export --format png16`), not sRGB")):
     """Normal map of a whole image (overlapping 40x40 tiles, blended) or by the Lambertian baseline."""
     from msps_render.models.predict import predict_main
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out.parent)
-    files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk)
+    files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk,
+                         linear=linear)
     typer.echo("wrote " + ", ".join(map(str, files)))

@@ -24,16 +24,23 @@ def render_scene(scene: Path = typer.Argument(..., help="SceneSpec JSON (see `ms
 
     spec = SceneSpec.load(scene)
     check_writable(out)
+    import time
+
+    c, n = spec.camera, len(spec.lights) + (spec.environment is not None)
+    typer.echo(f"rendering {scene}: {c.width}x{c.height}, {spec.integrator.spp} spp, {n} emitter(s) rendered "
+               "one by one ...")  # stdout: stderr is kept for the one error line
+    t0 = time.perf_counter()
     frame = render_frame(spec, variant=variant, threads=threads, per_light=per_light)
     files = frame.save(out)
-    typer.echo(f"rendered {scene} with {frame.variant} -> {out} ({len(files)} files)")
+    typer.echo(f"rendered {scene} with {frame.variant} in {time.perf_counter() - t0:.1f} s -> {out} "
+               f"({len(files)} files)")
 
 
 @app.command("sample-scene")
 @clean_errors
 def sample_scene_cmd(out: Path = typer.Option(..., "--out", "-o", help="SceneSpec JSON to write"),
                      seed: int = typer.Option(0, help="seed"),
-                     config: Optional[Path] = typer.Option(None, help="TOML with a [scene] table (SceneConfig)"),
+                     config: Optional[Path] = typer.Option(None, help="TOML with a \\[scene] table (SceneConfig)"),
                      show: bool = typer.Option(False, help="print the scene summary")):
     """Draw one SceneSpec from a seed (default scene config) and save it as JSON."""
     import numpy as np

@@ -125,6 +125,23 @@ def _conditions(m: dict) -> tuple[Condition, ...]:
     return tuple(Condition(n, typed.get(n, {}).get("key"), typed.get(n, {}).get("value")) for n in names)
 
 
+def training_lights(roots) -> dict | None:
+    """The light geometry of training datasets (from their manifests), as stored in checkpoints."""
+    roots = [roots] if isinstance(roots, (str, Path)) else list(roots)
+    lo, hi, tilts, M = [], [], None, None
+    for r in roots:
+        m = read_manifest(r) or {}
+        lc = ((m.get("config") or {}).get("scene") or {}).get("lights")
+        if not lc:
+            return None
+        rng = lc.get("slant_range_deg")
+        lo.append(rng[0] if rng else lc["slant_deg"])
+        hi.append(rng[1] if rng else lc["slant_deg"])
+        tilts, M = tilts or lc.get("tilts_deg"), M or lc.get("crosstalk")
+    return {"slant_deg": [min(lo), max(hi)], "tilts_deg": tilts, "crosstalk": M,
+            "source": "training data manifests"}
+
+
 def load_manifest(root: str | Path, need_complete: bool = True) -> Manifest:
     """The typed manifest of a dataset directory; `InputError` if there is none (or it is incomplete)."""
     root = Path(root)

@@ -72,6 +72,12 @@ def read_frame_table(path: str | Path) -> dict[str, list]:
                 "condition": h[K.FRAME_CONDITION].asstr()[()].tolist()}
 
 
+def read_frame_scenes(path: str | Path) -> tuple[np.ndarray, list[str]]:
+    """(light_rgb (F, 3, 3), SceneSpec JSON per frame) of a shard."""
+    with shard_errors(path), open_shard(path) as h:
+        return h[K.FRAME_LIGHT_RGB][()], h[K.FRAME_SCENE_JSON].asstr()[()].tolist()
+
+
 def has_whole_frames(h) -> bool:
     return K.FRAME_IMAGE in h
 

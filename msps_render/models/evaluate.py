@@ -19,6 +19,7 @@ from msps_render.dataset import Manifest, load_manifest
 from msps_render.errors import InputError
 from msps_render.models.baseline import lambertian_ps
 from msps_render.models.metrics import angular_error_deg, error_stats
+from msps_render.models.report import PER_OBJECT_NOTE, error_histogram, per_object_detail, write_plots
 
 
 def _ssim_masked(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
@@ -92,6 +93,7 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
             if max_patches and seen >= max_patches:
                 break
         stats = error_stats(np.concatenate(errs) if errs else np.zeros(0))
+        stats["hist_deg"] = error_histogram(np.concatenate(errs) if errs else np.zeros(0))
         stats["ssim"] = float(np.sum(ssims) / max(seen, 1))
         stats["n_patches"] = seen
         report["conditions"][cond] = {"patches": stats}
@@ -102,19 +104,25 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
             frames = []
         if frames:
             per_obj = defaultdict(list)
-            all_err = []
+            all_err, rows = [], []
             for fr in frames:
                 n = pred.frame(fr)
                 e = angular_error_deg(n[fr.mask], fr.normal[fr.mask])
                 per_obj[fr.object].append(float(e.mean()))
                 all_err.append(e)
+                rows.append((fr.object, float(e.mean()), int(e.size), float(e.sum())))
             report["conditions"][cond]["frames"] = error_stats(np.concatenate(all_err))
             report["conditions"][cond]["per_object"] = {k: float(np.mean(v)) for k, v in sorted(per_obj.items())}
+            report["conditions"][cond]["per_object_detail"] = per_object_detail(rows)  # models/report.py
     if len(conditions) > 1:
         report["robustness"] = robustness(report, m)
     out.mkdir(parents=True, exist_ok=True)
+    if any(v.get("per_object") for v in report["conditions"].values()):
+        report["per_object_note"] = PER_OBJECT_NOTE
     (out / "metrics.json").write_text(json.dumps(report, indent=1))
     _write_tables(report, out)
+    report["files"] = [str(out / "metrics.json")] + [str(p) for p in write_plots(report, out)] + \
+        [str(out / n) for n in ("per_object.csv", "robustness.png") if (out / n).is_file()]
     return report
 
 

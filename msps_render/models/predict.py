@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msps_render.calibration import PAPER_CROSSTALK, direction_from_slant_tilt
+from msps_render.calibration import geometry_warnings, load_calibration_file, parse_calibration
 from msps_render.errors import InputError
 from msps_render.io.images import read_image, write_png
 from msps_render.models.baseline import lambertian_ps
@@ -58,32 +58,35 @@ def predict_image(model, image: np.ndarray, mask: np.ndarray, tile: int = 40, st
 
 
 def load_calibration(path: str | Path | None, light_dirs: str | None, crosstalk: str | None):
-    """Light directions (3x3, rows toward the lights) and crosstalk (3x3) from a JSON file or flags."""
-    L = np.array([direction_from_slant_tilt(30.0, t) for t in (0, 120, 240)])
-    M = PAPER_CROSSTALK.copy()
-    if path:
-        p = Path(path)
-        try:
-            d = json.loads(p.read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise InputError(p, f"cannot read calibration JSON ({e})") from None
-        if "light_dirs" in d:
-            L = np.asarray(d["light_dirs"], dtype=np.float64)
-        elif "slant_deg" in d:
-            L = np.array([direction_from_slant_tilt(d["slant_deg"], t) for t in d.get("tilts_deg", (0, 120, 240))])
-        if "crosstalk" in d:
-            M = np.asarray(d["crosstalk"], dtype=np.float64)
-    if light_dirs:
-        L = np.asarray(json.loads(light_dirs), dtype=np.float64)
-    if crosstalk:
-        M = np.asarray(json.loads(crosstalk), dtype=np.float64)
-    if L.shape != (3, 3) or M.shape != (3, 3):
-        raise InputError(path or "--light-dirs/--crosstalk", f"need 3x3 light_dirs and crosstalk, got {L.shape}, {M.shape}")
-    return L / np.linalg.norm(L, axis=1, keepdims=True), M
+    """Light directions (3x3, rows toward the lights) and crosstalk (3x3) from a calibration JSON
+    (schema: `msps_render.calibration`) and/or the --light-dirs/--crosstalk flags (which win)."""
+    L, M = load_calibration_file(path) if path else parse_calibration({})
+    if light_dirs or crosstalk:
+        d = {}
+        for key, text in (("light_dirs", light_dirs), ("crosstalk", crosstalk)):
+            if text:
+                try:
+                    d[key] = json.loads(text)
+                except json.JSONDecodeError as e:
+                    raise InputError(f"--{key.replace('_', '-')}", f"not valid JSON ({e})") from None
+        L2, M2 = parse_calibration({"light_dirs": d.get("light_dirs", L.tolist()),
+                                    "crosstalk": d.get("crosstalk", M.tolist())},
+                                   "--light-dirs/--crosstalk")
+        L, M = L2, M2
+    return L, M
 
 
-def read_inputs(image_path: str | Path, mask_path: str | Path | None) -> tuple[np.ndarray, np.ndarray]:
-    img = read_image(image_path)
+def read_inputs(image_path: str | Path, mask_path: str | Path | None,
+                linear: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """PNG keeps 16 bits (Pillow would truncate them) and is sRGB-decoded unless `linear`."""
+    if Path(image_path).suffix.lower() == ".png":
+        from msps_render.compose import read_photo
+
+        img = read_photo(Path(image_path), srgb=not linear).astype(np.float32)
+    else:
+        img = read_image(image_path)
+    if img.shape[-1] == 4:  # RGBA: the alpha channel carries no radiance
+        img = np.ascontiguousarray(img[..., :3])
     if img.shape[-1] != 3:
         raise InputError(image_path, f"expected a 3-channel RGB image, got {img.shape[-1]} channel(s)")
     if mask_path:
@@ -97,17 +100,30 @@ def read_inputs(image_path: str | Path, mask_path: str | Path | None) -> tuple[n
 
 def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | None = None,
                  method: str = "net", mask: str | Path | None = None, calibration: str | Path | None = None,
-                 light_dirs: str | None = None, crosstalk: str | None = None) -> list[Path]:
-    """Write OUT.npy (H, W, 3 normals) and OUT.png (visualisation)."""
-    img, mk = read_inputs(image, mask)
+                 light_dirs: str | None = None, crosstalk: str | None = None, warn=None,
+                 linear: bool = False) -> list[Path]:
+    """Write OUT.npy (H, W, 3 normals) and OUT.png (visualisation).
+
+    `warn(message)` (default: a 'warning: ...' line on stderr) hears when the Lambertian path assumes
+    the paper's lights for lack of a calibration, and when the given lights differ from the geometry
+    the network was trained for (the network takes no light input)."""
+    warn = warn or _warn_stderr
+    img, mk = read_inputs(image, mask, linear)
+    calibrated = bool(calibration or light_dirs or crosstalk)
+    L, M = load_calibration(calibration, light_dirs, crosstalk)  # validated on both paths
     if method == "lambertian":
-        L, M = load_calibration(calibration, light_dirs, crosstalk)
+        if not calibrated:
+            warn("no --calibration: assuming the paper's lights (slant 30 deg, tilts 0/120/240 deg, "
+                 "crosstalk 0.92/0.04)")
         n = lambertian_ps(img, L, M, mk)
     else:
         from msps_render.models.checkpoint import load_checkpoint
 
         ck = checkpoint or default_checkpoint()
-        model, _, _ = load_checkpoint(ck)
+        model, _, ckd = load_checkpoint(ck)
+        if calibrated:
+            for w in geometry_warnings(L, M, ckd.get("train_lights")):
+                warn(w)
         if min(img.shape[:2]) < 40:
             raise InputError(image, f"image is {img.shape[1]}x{img.shape[0]}; the network needs at least 40x40")
         n = predict_image(model, img, mk)
@@ -117,6 +133,12 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
     np.save(npy, n.astype(np.float32))
     png = write_png(out.with_suffix(".png"), normal_to_rgb8(n, mk))
     return [npy, png]
+
+
+def _warn_stderr(msg: str) -> None:
+    import sys
+
+    print(f"warning: {msg}", file=sys.stderr)
 
 
 def default_checkpoint() -> Path:

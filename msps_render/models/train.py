@@ -25,7 +25,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from msps_render.dataset import read_manifest
+from msps_render.dataset import read_manifest, training_lights
 from msps_render.errors import InputError
 from msps_render.models.checkpoint import load_checkpoint, save_checkpoint
 from msps_render.models.losses import total_loss
@@ -86,6 +86,7 @@ class Run:
     dhash: str
     state: dict = field(default_factory=lambda: {"step": 0, "epoch": 0, "batch_in_epoch": 0, "elapsed": 0.0,
                                                  "best_val": float("inf")})
+    train_lights: dict | None = None  # the light geometry of the training data (predict compares against it)
     n_params: int = 0
     t_start: float = 0.0
     budget: float = float("inf")
@@ -105,7 +106,7 @@ class Run:
         return save_checkpoint(self.out / name, self.model, self.cfg, {
             "optimizer": self.opt.state_dict(), "state": dict(self.state),
             "torch_rng": torch.get_rng_state(), "data_hash": self.dhash, "n_params": self.n_params,
-            "val_mae_deg": val_mae})
+            "val_mae_deg": val_mae, "train_lights": self.train_lights})
 
 
 def build_model(cfg: ModelConfig, device: str) -> tuple[torch.nn.Module, torch.optim.Optimizer]:
@@ -228,7 +229,7 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
     out, t_cfg = Path(out), cfg.train
     train_ds, val_ds = open_data(data, val, verify)
     model, opt = build_model(cfg, device)
-    run = Run(cfg, out, model, opt, data_hash(data))
+    run = Run(cfg, out, model, opt, data_hash(data), train_lights=training_lights(data))
     start_run(run, resume, init)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=1))

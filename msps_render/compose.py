@@ -1,0 +1,216 @@
+"""`msps compose`: real photographs in: one pseudo-multispectral image from per-light captures.
+
+A capture folder in the DiLiGenT style holds one photo per white light,
+`light_directions.txt` (row k: x y z toward light k, camera frame: x right,
+y up, z toward the camera), `light_intensities.txt` (row k: R G B of light k;
+optional, default 1), optionally `filenames.txt` (image names in light order;
+default: the folder's images sorted by name) and `mask.png`.
+
+Compose picks the three lights closest to the slant/tilt layout the network
+expects (assignment minimising the total angle), divides each photo by its
+light's intensity (the object under a unit white light, the DiLiGenT
+convention) and mixes them with the crosstalk matrix as a coloured-light
+camera would see them at once:
+
+    composed[c] = sum_k M[c, k] * photo_k[c] / intensity_k[c]
+
+which is exactly how the renderer forms an RGB image from three lights of RGB
+`M[:, k]`.  It writes `image.exr` (linear), `mask.png`, `calibration.json` (the
+chosen lights' real directions and M, in the schema `msps predict
+--calibration` reads) and `preview.png`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from msps_render.errors import InputError
+
+IMAGE_SUFFIXES = (".png", ".exr", ".hdr", ".npy", ".tif", ".tiff", ".jpg", ".jpeg")
+NOT_PHOTOS = ("mask", "normal_gt", "normal", "preview")
+WARN_DEVIATION_DEG = 10.0
+
+
+@dataclass
+class Capture:
+    root: Path
+    images: list[Path]
+    light_dirs: np.ndarray  # (N, 3) unit rows
+    intensities: np.ndarray  # (N, 3)
+    mask_path: Path | None
+
+
+def _read_rows(path: Path, what: str) -> np.ndarray:
+    try:
+        a = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except (OSError, ValueError) as e:
+        raise InputError(path, f"cannot read {what} ({str(e).splitlines()[0][:100]})") from None
+    if a.size == 0:
+        raise InputError(path, f"no {what} in the file")
+    if not np.isfinite(a).all():
+        raise InputError(path, f"{what} contain NaN/inf")
+    return a
+
+
+def read_capture(root: str | Path) -> Capture:
+    """Validate a capture folder (one line naming the file on any problem); reads no image yet."""
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(root, "capture folder not found")
+    ld = root / "light_directions.txt"
+    if not ld.is_file():
+        raise InputError(ld, "missing (row k: x y z toward light k, camera frame)")
+    L = _read_rows(ld, "light directions")
+    if L.shape[1] != 3:
+        raise InputError(ld, f"need 3 numbers per row (x y z), got {L.shape[1]}")
+    n = np.linalg.norm(L, axis=1)
+    if (n < 1e-9).any():
+        raise InputError(ld, f"row {int(np.argmin(n)) + 1} is the zero vector")
+    L = L / n[:, None]
+    li = root / "light_intensities.txt"
+    if li.is_file():
+        E = _read_rows(li, "light intensities")
+        if E.shape[1] == 1:
+            E = np.repeat(E, 3, axis=1)
+        if E.shape != L.shape:
+            raise InputError(li, f"{len(E)} rows of {E.shape[1]} values; need {len(L)} rows of R G B "
+                                 "(one per light direction)")
+        if (E <= 0).any():
+            raise InputError(li, f"row {int(np.argwhere(E <= 0)[0][0]) + 1} has an intensity <= 0")
+    else:
+        E = np.ones_like(L)
+    fn = root / "filenames.txt"
+    if fn.is_file():
+        names = [s.strip() for s in fn.read_text().splitlines() if s.strip()]
+        images = [root / s for s in names]
+        src = fn
+    else:
+        images = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()
+                        and not p.stem.lower().startswith(NOT_PHOTOS))
+        src = root
+    if len(images) != len(L):
+        raise InputError(src, f"{len(images)} images but {len(L)} light directions in {ld.name}")
+    mask = root / "mask.png"
+    return Capture(root, images, L, E, mask if mask.is_file() else None)
+
+
+def choose_lights(light_dirs: np.ndarray, slant_deg: float, tilts_deg) -> tuple[np.ndarray, np.ndarray]:
+    """(indices of the capture lights closest to the targets, their angles to the targets in degrees)."""
+    from scipy.optimize import linear_sum_assignment
+
+    from msps_render.calibration import direction_from_slant_tilt
+
+    T = np.array([direction_from_slant_tilt(slant_deg, t) for t in tilts_deg])
+    ang = np.degrees(np.arccos(np.clip(np.asarray(light_dirs) @ T.T, -1.0, 1.0)))  # (N, 3)
+    rows, cols = linear_sum_assignment(ang)
+    idx = np.empty(len(T), dtype=int)
+    idx[cols] = rows
+    return idx, ang[idx, np.arange(len(T))]
+
+
+def read_photo(path: Path, srgb: bool = False) -> np.ndarray:
+    """A capture image as linear float RGB (H, W, 3).  PNG/TIFF integers are taken as linear
+    (raw captures such as DiLiGenT's 16-bit PNGs) unless `srgb`; alpha is dropped."""
+    from msps_render.io.png16 import read_png
+    from msps_render.io.images import read_image
+
+    if not path.is_file():
+        raise InputError(path, "image file not found")
+    if path.suffix.lower() == ".png":
+        a = read_png(path)
+        img = a.astype(np.float64) / np.iinfo(a.dtype).max
+        if srgb:
+            img = np.where(img <= 0.04045, img / 12.92, ((img + 0.055) / 1.055) ** 2.4)
+    else:
+        img = read_image(path).astype(np.float64)  # EXR/HDR/NPY linear; JPG/TIFF decoded as sRGB
+    if img.ndim == 2:
+        img = img[..., None]
+    if img.shape[-1] in (2, 4):  # grey+alpha, RGBA: drop alpha
+        img = img[..., :-1]
+    if img.shape[-1] == 1:
+        img = np.repeat(img, 3, axis=-1)
+    if img.shape[-1] != 3:
+        raise InputError(path, f"expected an RGB or grey image, got {img.shape[-1]} channels")
+    return img
+
+
+def parse_crosstalk(text: str | None) -> np.ndarray:
+    """--crosstalk: 'paper' (default, 0.92/0.04), 'identity', or a JSON 3x3 (rows: channels, columns: lights)."""
+    import json
+
+    from msps_render.calibration import PAPER_CROSSTALK, crosstalk_problem
+
+    if text is None or text.strip().lower() == "paper":
+        return PAPER_CROSSTALK.copy()
+    if text.strip().lower() in ("identity", "none"):
+        return np.eye(3)
+    try:
+        M = np.asarray(json.loads(text), dtype=np.float64)
+    except (json.JSONDecodeError, TypeError, ValueError) as e:
+        raise InputError("--crosstalk", f"not 'paper', 'identity' or a JSON 3x3 matrix ({e})") from None
+    if M.shape != (3, 3):
+        raise InputError("--crosstalk", f"must be 3x3, got shape {list(M.shape)}")
+    why = crosstalk_problem(M)
+    if why:
+        raise InputError("--crosstalk", f"crosstalk {why}")
+    return M
+
+
+def compose_capture(capture_dir: str | Path, out: str | Path, slant_deg: float = 30.0,
+                    tilts_deg=(0.0, 120.0, 240.0), crosstalk: np.ndarray | None = None,
+                    srgb: bool = False) -> dict:
+    """Write OUT/{image.exr, mask.png, calibration.json, preview.png}; returns a summary with warnings."""
+    from msps_render.calibration import write_calibration
+    from msps_render.io.png16 import read_png, write_png
+    from msps_render.io.staging import check_new_out, staged_dir
+    from msps_render.io.images import write_exr
+    from msps_render.preview import tonemap
+    from msps_render.calibration import PAPER_CROSSTALK, direction_from_slant_tilt
+
+    out = Path(out)
+    tilts = [float(t) for t in tilts_deg]
+    if len(tilts) != 3:
+        raise InputError("--tilts", f"need 3 tilts, got {len(tilts)}")
+    direction_from_slant_tilt(slant_deg, 0.0)  # validates the slant
+    M = PAPER_CROSSTALK.copy() if crosstalk is None else np.asarray(crosstalk, np.float64)
+    cap = read_capture(capture_dir)
+    front = cap.light_dirs[:, 2] > 0
+    if front.sum() < 3:
+        raise InputError(cap.root / "light_directions.txt", "fewer than 3 lights in front of the object (z > 0)")
+    cand = np.nonzero(front)[0]
+    sel, dev = choose_lights(cap.light_dirs[cand], slant_deg, tilts)
+    idx = cand[sel]
+    check_new_out(out)
+    photos = [read_photo(cap.images[i], srgb) for i in idx]
+    H, W = photos[0].shape[:2]
+    for i, p in zip(idx, photos):
+        if p.shape[:2] != (H, W):
+            raise InputError(cap.images[i], f"image is {p.shape[1]}x{p.shape[0]}, "
+                                            f"{cap.images[idx[0]].name} is {W}x{H}")
+    unit = [p / cap.intensities[i][None, None, :] for i, p in zip(idx, photos)]  # unit white light
+    comp = np.zeros((H, W, 3))
+    for k in range(3):
+        comp += unit[k] * M[:, k][None, None, :]
+    if cap.mask_path is not None:
+        m = read_png(cap.mask_path)
+        m = (m[..., 0] if m.ndim == 3 else m) > 0
+        if m.shape != (H, W):
+            raise InputError(cap.mask_path, f"mask is {m.shape[1]}x{m.shape[0]}, images are {W}x{H}")
+    else:
+        m = comp.max(-1) > 0
+    comp[~m] = 0.0
+    warnings = [f"light {cap.images[i].name} is {d:.1f} deg from the target (slant {slant_deg:g}, tilt {t:g})"
+                for i, d, t in zip(idx, dev, tilts) if d > WARN_DEVIATION_DEG]
+    L = cap.light_dirs[idx]
+    info = {"capture": str(cap.root.resolve()), "images": [cap.images[i].name for i in idx],
+            "light_indices": [int(i) + 1 for i in idx], "target_slant_deg": float(slant_deg),
+            "target_tilts_deg": tilts, "deviation_deg": [float(d) for d in dev],
+            "intensities": cap.intensities[idx].tolist()}
+    with staged_dir(out) as stage:
+        write_exr(stage / "image.exr", comp.astype(np.float32))
+        write_png(stage / "mask.png", (m * 255).astype(np.uint8))
+        write_calibration(stage / "calibration.json", L, M, source="msps compose", info=info)
+        write_png(stage / "preview.png", tonemap(comp, m))
+    return {**info, "out": str(out), "warnings": warnings}

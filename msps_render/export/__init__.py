@@ -1,0 +1,58 @@
+"""`msps export`: a dataset's whole frames in the layouts other photometric-stereo code reads.
+
+One module per format, each registering an `ExportFormat` in `FORMATS`
+(`formats.py`; add a format: one module, and its name in the import below).  `export_dataset` validates everything
+first, writes into a hidden temporary directory beside `--out` and renames it
+into place at the end, so a failure or an interrupt leaves nothing behind.
+Layouts and conventions: docs/recipes.md "Export".
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+from msps_render.dataset.manifest import SHARD_DIR, read_manifest
+from msps_render.errors import InputError
+from msps_render.export import diligent, images, psfcn  # noqa: F401  (each registers its format)
+from msps_render.export.formats import FORMATS, ExportFormat, get_format, register  # noqa: F401
+from msps_render.export.source import (ExportFrame, check_has_frames, dataset_variant, iter_export_frames,
+                                       write_json)
+from msps_render.io.staging import check_new_out, staged_dir
+
+
+def export_dataset(root: str | Path, fmt: str, out: str | Path, rerender: bool = False,
+                   progress: Callable[[int, ExportFrame], None] | None = None) -> dict:
+    """Export every whole frame of dataset `root` as `fmt` into the new directory `out`; returns the index."""
+    root, out = Path(root), Path(out)
+    f = get_format(fmt)
+    check_has_frames(root)  # also: not a dataset, incomplete, unreadable shard
+    if f.per_light and not rerender:
+        first = sorted((root / SHARD_DIR).glob("shard-*.h5"))[0]
+        raise InputError(first, f"shards store no per-light images, which the {f.name} layout needs; add "
+                                "--rerender to re-render them from the scenes stored in the shards (needs Mitsuba)")
+    check_new_out(out)
+    with staged_dir(out) as stage:
+        infos = []
+        variant = dataset_variant(root) if f.per_light else None
+        for i, ef in enumerate(iter_export_frames(root, per_light=f.per_light, variant=variant)):
+            info = ef.info()
+            info.update(f.write_frame(ef, stage))
+            infos.append(info)
+            if progress:
+                progress(i, ef)
+        if f.finish:
+            f.finish(stage, infos)
+        m = read_manifest(root) or {}
+        index = {"format": f.name, "dataset": str(root.resolve()), "config_hash": m.get("config_hash"),
+                 "n_frames": len(infos), "conventions": CONVENTIONS, "frames": infos}
+        write_json(stage / "export.json", index)
+    return index
+
+
+CONVENTIONS = {
+    "frame": "camera frame: x right, y up, z toward the camera (normals and light directions)",
+    "radiance": "linear (no gamma); PNG value / 65535 (or / 255) / png_scale = radiance",
+    "normal_png": "(n + 1) / 2 * 65535 (or * 255); n = 0 (mid grey) outside the mask",
+    "light_intensities": "row k: RGB intensity of light k on the image's scale: image_k / intensity_k is "
+                         "the image under a unit white light (DiLiGenT convention)",
+}

@@ -1,0 +1,35 @@
+"""The export-format registry: each format module registers one `ExportFormat` in `FORMATS`."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from msps_render.errors import InputError, closest
+from msps_render.export.source import ExportFrame
+
+
+@dataclass(frozen=True)
+class ExportFormat:
+    name: str
+    help: str
+    write_frame: Callable[[ExportFrame, Path], dict]  # writes one frame under the export root, returns info
+    finish: Callable[[Path, list[dict]], None] | None = None  # index files, after every frame
+    per_light: bool = False  # needs one image per light (shards do not store them: --rerender)
+
+
+FORMATS: dict[str, ExportFormat] = {}
+
+
+def register(fmt: ExportFormat, aliases: tuple[str, ...] = ()) -> ExportFormat:
+    for name in (fmt.name, *aliases):
+        FORMATS[name.lower()] = fmt
+    return fmt
+
+
+def get_format(name: str) -> ExportFormat:
+    f = FORMATS.get(name.lower())
+    if f is None:
+        raise InputError("--format", f"unknown export format '{name}'{closest(name.lower(), FORMATS)} "
+                                     f"(known: {', '.join(FORMATS)})")
+    return f

@@ -1,0 +1,61 @@
+"""PS-FCN's synthetic-data layout (Chen et al., ECCV 2018; `datasets/PS_Synth_Dataset.py`), one
+"shape" per frame and one "material" folder per shape:
+
+    OUT/train_mtrl.txt                          "<shape>/<mtrl>" per line (rename for other splits)
+    OUT/Images/<shape>/<shape>_normal.png       8-bit (n+1)/2 normal map, n = 0 outside (PS-FCN's mask)
+    OUT/Images/<shape>/mask.png                 8-bit, 255 on the object (extra)
+    OUT/Images/<shape>/<mtrl>/<shape>_<mtrl>.txt  "l_000.png x y z" per light
+    OUT/Images/<shape>/<mtrl>/l_000.png ...     8-bit linear RGB, one per light, divided by the light's
+                                                RGB (PS-FCN's data have unit white lights)
+    OUT/Images/<shape>/<mtrl>/light_directions.txt, light_intensities.txt  (extra, DiLiGenT-style)
+
+Image k is per_light[k] / light_rgb[k] (per channel) times one exposure per
+frame (`png_scale`, brightest -> 255); light_intensities.txt holds png_scale in
+every channel, so image / intensity is again the image under a unit white light.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from msps_render.export.formats import ExportFormat, register
+from msps_render.export.diligent import fmt_rows
+from msps_render.io.png16 import encode_normal, to_unorm, write_png
+from msps_render.export.source import ExportFrame, safe_name
+
+NAMES = ("l_000.png", "l_001.png", "l_002.png")
+
+
+def white_balanced(per_light: np.ndarray, light_rgb: np.ndarray) -> np.ndarray:
+    """per_light[k] / light_rgb[k] per channel (0 where the light has no such channel)."""
+    rgb = np.asarray(light_rgb, np.float64)[:, None, None, :]
+    return np.where(rgb > 0, per_light / np.where(rgb > 0, rgb, 1.0), 0.0)
+
+
+def write_frame(ef: ExportFrame, root: Path) -> dict:
+    shape, mtrl = ef.id, safe_name(ef.materials.replace(";", "+"))
+    sd = root / "Images" / shape
+    md = sd / mtrl
+    md.mkdir(parents=True)
+    wb = white_balanced(ef.per_light, ef.light_rgb)
+    top = float(wb.max()) if wb.size else 0.0
+    s = 1.0 / top if top > 0 else 1.0
+    for name, img in zip(NAMES, wb):
+        write_png(md / name, to_unorm(img * s, np.uint8))
+    L = np.asarray(ef.light_dirs, np.float64)
+    (md / f"{shape}_{mtrl}.txt").write_text("".join(f"{n} " + " ".join(f"{v:.9g}" for v in l) + "\n"
+                                                    for n, l in zip(NAMES, L)))
+    (md / "light_directions.txt").write_text(fmt_rows(L))
+    (md / "light_intensities.txt").write_text(fmt_rows(np.full((len(NAMES), 3), s)))
+    write_png(sd / f"{shape}_normal.png", encode_normal(ef.normal, ef.mask, np.uint8))
+    write_png(sd / "mask.png", (ef.mask * 255).astype(np.uint8))
+    return {"dir": f"Images/{shape}/{mtrl}", "png_scale": s}
+
+
+def finish(root: Path, infos: list[dict]) -> None:
+    (root / "train_mtrl.txt").write_text("".join(i["dir"].split("/", 1)[1] + "\n" for i in infos))
+
+
+register(ExportFormat("psfcn", "PS-FCN synthetic layout: Images/<shape>/<mtrl>/l_*.png + light list, "
+                               "<shape>_normal.png, train_mtrl.txt", write_frame, finish, per_light=True))
