@@ -170,6 +170,26 @@ def test_estimates_against_real_render(tiny_render, tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []  # the probe shard was deleted
 
 
+def test_failed_probe_leaves_no_temporaries(tmp_path, monkeypatch):
+    import tempfile
+
+    from msps_render.errors import InputError
+    from msps_render.pipeline import describe as D
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+
+    def broken(path):
+        assert Path(path).is_file()  # the probe shard exists when it fails ...
+        raise InputError(path, "simulated failure")
+
+    monkeypatch.setattr(D, "storage_bytes", broken)
+    (tmp_path / "cfg").mkdir()
+    cfg = load_config(write(tmp_path / "cfg", TINY))
+    with pytest.raises(InputError, match="simulated failure"):
+        D.describe(cfg, probe=1, masks=1)
+    assert [p.name for p in tmp_path.iterdir()] == ["cfg"]  # ... and is gone with its directory
+
+
 # ------------------------------------------------------------------ schema
 def test_docs_config_md_in_sync():
     from msps_render.cli.config import config_reference
