@@ -283,3 +283,26 @@ def test_sweep_conditions_share_scenes(tmp_path):
             slant = h[K.FRAME_SLANT_DEG][()]
         assert np.allclose(slant, 20.0 if name.endswith("0.h5") else 40.0)
     assert objs[0] == objs[1]  # same objects under both conditions
+
+
+def test_sensor_noise_has_its_own_stream(tmp_path):
+    """The recorded image is re-created from the stored scene and its frame's sensor stream alone
+    (no replay of the scene sampler's draws), so sampler changes never move the sensor noise."""
+    from msps_render.data import iter_frames
+    from msps_render.pipeline.plan import plan, sensor_rng
+    from msps_render.render import render_frame
+    from msps_render.render.sensor import apply_sensor
+    from msps_render.scene.spec import SceneSpec
+
+    cfg = load_config(tiny_config(tmp_path, n_shards=1, store_frames=True), ["sensor.enabled=true"])
+    out = tmp_path / "ds"
+    render_dataset(cfg, out, progress=False, variant=_variant())
+    task = plan(cfg)[0]
+    with h5py.File(out / "shards" / "shard-00000.h5", "r") as h:
+        spec = SceneSpec.from_json(h[K.FRAME_SCENE_JSON].asstr()[1])
+    stored = list(iter_frames(out))[1].image
+    clean = render_frame(spec, variant=_variant())
+    again = apply_sensor(clean, cfg.scene.sensor, sensor_rng(task, 1)).image
+    np.testing.assert_array_equal(again.astype(stored.dtype), stored)  # as stored (float16 or float32)
+    other = apply_sensor(clean, cfg.scene.sensor, sensor_rng(task, 0)).image  # another frame's stream
+    assert not np.array_equal(other, again)

@@ -26,7 +26,7 @@ from msps_render.dataset.manifest import SHARD_DIR
 from msps_render.errors import InputError, WorkerDied
 from msps_render.patches import patchify
 from msps_render.pipeline.config import DatasetConfig
-from msps_render.pipeline.plan import Task, frame_rngs, frame_seed
+from msps_render.pipeline.plan import Task, frame_rngs, frame_seed, sensor_rng
 from msps_render.render import render_frame
 from msps_render.render.memory import release_frame_memory
 from msps_render.render.sensor import apply_sensor
@@ -54,9 +54,9 @@ def render_shard(task: Task, ws: WorkerSettings) -> dict:
         tr = time.perf_counter()
         frame = render_frame(spec, variant=ws.variant, threads=ws.threads)
         render_s += time.perf_counter() - tr
-        sensor = getattr(cfg.scene, "sensor", None)  # optional sensor model (msps_render.spectral)
+        sensor = getattr(cfg.scene, "sensor", None)  # optional sensor model (render/sensor.py), own noise stream
         if sensor is not None and getattr(sensor, "enabled", True):
-            frame = apply_sensor(frame, sensor, rng)
+            frame = apply_sensor(frame, sensor, sensor_rng(task, j))
         p = patchify(frame, d.patches.size, d.patches.stride, d.patches.min_coverage)
         pats.append(p)
         fidx.append(np.full(len(p), j, np.int32))

@@ -47,6 +47,15 @@ def frame_rngs(task: Task, n_frames: int) -> list[np.random.Generator]:
     return [np.random.default_rng(s) for s in shard_ss.spawn(n_frames)]
 
 
+SENSOR_STREAM = 0x53454E53  # "SENS"
+
+
+def sensor_rng(task: Task, j: int) -> np.random.Generator:
+    """Frame j's sensor-noise stream: its own, keyed by the frame seed, so the recorded image can be
+    re-created from a stored scene and its frame seed, and sampler changes never move the noise."""
+    return np.random.default_rng([frame_seed(task, j), SENSOR_STREAM])
+
+
 def frame_seed(task: Task, j: int) -> int:
     """A printable integer identifying frame j's stream (provenance only)."""
     return int(np.random.SeedSequence(task.seed).spawn(task.shard_in_condition + 1)[task.shard_in_condition]
