@@ -219,3 +219,38 @@ def test_inward_wound_mesh_is_reoriented(tmp_path):
     trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False).export(p)
     m = S.build_mesh(ShapeSpec(kind="mesh", path=str(p)))
     assert ((m.normals * m.vertices).sum(1) > 0).all()
+
+
+@pytest.mark.parametrize("gpu,cuda_ok,llvm_ok,expect", [
+    (False, True, True, "llvm_ad_rgb"),   # no NVIDIA driver: CUDA never probed
+    (True, True, True, "cuda_ad_rgb"),    # a working GPU wins
+    (True, False, True, "llvm_ad_rgb"),   # a GPU whose CUDA variant fails: LLVM, no warning
+    (True, False, False, "scalar_rgb"),   # nothing works: scalar with one warning
+])
+def test_variant_order_cuda_llvm_scalar(monkeypatch, gpu, cuda_ok, llvm_ok, expect):
+    """CUDA when a working device is present, then LLVM, then scalar; MSPS_VARIANT still forces one."""
+    monkeypatch.delenv("MSPS_VARIANT", raising=False)
+    probed = []
+
+    def probe(v, timeout=0):
+        probed.append(v)
+        return ({"cuda_ad_rgb": cuda_ok, "llvm_ad_rgb": llvm_ok}[v], "forced by test")
+
+    monkeypatch.setattr(V, "probe_variant", probe)
+    monkeypatch.setattr(V, "cuda_device_present", lambda: gpu)
+    if expect == "scalar_rgb":
+        with pytest.warns(V.VariantFallbackWarning, match="cuda_ad_rgb: forced by test; llvm_ad_rgb: forced"):
+            assert V.resolve_variant("rgb") == expect
+    else:
+        assert V.resolve_variant("rgb") == expect
+    assert ("cuda_ad_rgb" in probed) == gpu
+    monkeypatch.setenv("MSPS_VARIANT", "scalar_rgb")
+    assert V.resolve_variant("rgb") == "scalar_rgb"
+
+
+def test_cuda_variant_renders_on_a_gpu():
+    """On a machine with a working NVIDIA GPU the CUDA variant passes the probe (skips elsewhere)."""
+    if not V.cuda_device_present():
+        pytest.skip("no NVIDIA driver on this machine")
+    ok, why = V.probe_variant("cuda_ad_rgb")
+    assert ok, why

@@ -1,4 +1,5 @@
-"""Choosing a Mitsuba variant: fast LLVM JIT when it really works, scalar otherwise.
+"""Choosing a Mitsuba variant: CUDA when a working GPU is present, else the LLVM JIT when it
+really works, else scalar.
 
 Why a subprocess probe: drjit's LLVM backend needs a shared libLLVM it can use;
 an unusable one (e.g. LLVM 14 here) can abort the whole process, which no
@@ -14,7 +15,14 @@ import sys
 import warnings
 from functools import lru_cache
 
-PREFERRED = {"rgb": ("llvm_ad_rgb", "scalar_rgb"), "spectral": ("llvm_ad_spectral", "scalar_spectral")}
+# fastest first; the last entry always works (no JIT)
+PREFERRED = {"rgb": ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb"),
+             "spectral": ("cuda_ad_spectral", "llvm_ad_spectral", "scalar_spectral")}
+
+
+def cuda_device_present() -> bool:
+    """A cheap check before the CUDA probe (which costs a child process): an NVIDIA driver is loaded."""
+    return os.path.exists("/dev/nvidiactl") or os.path.exists("/proc/driver/nvidia/version")
 
 _PROBE = """
 import mitsuba as mi, drjit as dr
@@ -64,15 +72,20 @@ def resolve_variant(mode: str = "rgb", requested: str | None = None) -> str:
         if requested not in mi.variants():
             raise ValueError(f"Mitsuba variant '{requested}' is not available (have: {', '.join(mi.variants())})")
         return requested
-    fast, slow = PREFERRED[mode]
-    if fast in mi.variants():
-        ok, why = probe_variant(fast)
-        if ok:
-            return fast
-    else:
-        why = "not built into this Mitsuba"
-    warnings.warn(f"Mitsuba variant {fast} is unusable ({why}); falling back to {slow}, which is much "
-                  f"slower. Install a shared libLLVM >= 15 (Debian: apt-get install libllvm19).",
+    *fast, slow = PREFERRED[mode]
+    reasons = []
+    for v in fast:
+        if v not in mi.variants():
+            reasons.append(f"{v}: not built into this Mitsuba")
+        elif v.startswith("cuda") and not cuda_device_present():
+            continue  # no GPU: not worth a probe, and not worth a warning
+        else:
+            ok, why = probe_variant(v)
+            if ok:
+                return v
+            reasons.append(f"{v}: {why}")
+    warnings.warn(f"Mitsuba variant {fast[-1]} is unusable ({'; '.join(reasons)}); falling back to {slow}, "
+                  f"which is much slower. Install a shared libLLVM >= 15 (Debian: apt-get install libllvm19).",
                   VariantFallbackWarning, stacklevel=2)
     return slow
 
