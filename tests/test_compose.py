@@ -92,8 +92,13 @@ def test_compose_cli_and_predict_warns_about_trained_geometry(tmp_path):
     assert sorted(p.name for p in (tmp_path / "o45").iterdir()) == ["calibration.json", "image.exr", "mask.png",
                                                                     "preview.png"]
     pytest.importorskip("torch")
+    from msps_render.models.predict import default_checkpoint
+
+    # a network trained at slant 30 only (v0.1: no recorded lights -> the model card's paper geometry);
+    # the default v0.2 was trained at 20-40 deg, so 45 deg is within its tolerance (checked below)
+    v01 = default_checkpoint().parent / "dualcue-cpu-v0.1.pt"
     warns = []
-    predict_main(tmp_path / "o45" / "image.exr", tmp_path / "p45", mask=tmp_path / "o45" / "mask.png",
+    predict_main(tmp_path / "o45" / "image.exr", tmp_path / "p45", checkpoint=v01, mask=tmp_path / "o45" / "mask.png",
                  calibration=tmp_path / "o45" / "calibration.json", warn=warns.append)
     assert any("slant 45.0, 45.0, 45.0 deg differs from the 30 deg" in w for w in warns), warns
     assert any("takes no light input" in w for w in warns)
@@ -106,9 +111,22 @@ def test_compose_cli_and_predict_warns_about_trained_geometry(tmp_path):
     assert warns == []
     # the CLI prints it (and still writes the prediction)
     r = cli("predict", tmp_path / "o45" / "image.exr", "--mask", tmp_path / "o45" / "mask.png", "--calibration",
-            tmp_path / "o45" / "calibration.json", "--out", tmp_path / "cli45")
+            tmp_path / "o45" / "calibration.json", "--out", tmp_path / "cli45", "--checkpoint", v01)
     assert r.returncode == 0 and "warning: light slant" in r.stderr, r.stderr
     assert (tmp_path / "cli45.npy").is_file()
+    # the default network records its training range (slant 20-40 deg): 45 is within 5 deg of it,
+    # 55 is not
+    warns = []
+    predict_main(tmp_path / "o45" / "image.exr", tmp_path / "d45", mask=tmp_path / "o45" / "mask.png",
+                 calibration=tmp_path / "o45" / "calibration.json", warn=warns.append)
+    assert warns == [], warns
+    from msps_render.calibration import geometry_warnings
+    from msps_render.models.checkpoint import load_checkpoint
+
+    trained = load_checkpoint(default_checkpoint())[2]["train_lights"]
+    assert trained["slant_deg"] == [20.0, 40.0] and trained["source"] == "training data manifests"
+    far = [direction_from_slant_tilt(55, t) for t in (0, 120, 240)]
+    assert any("differs from the 20-40 deg" in w for w in geometry_warnings(far, trained["crosstalk"], trained))
 
 
 def test_compose_bad_captures_fail_with_one_line(tmp_path):
