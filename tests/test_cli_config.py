@@ -2,14 +2,12 @@
 `msps config schema` (docs/config.md generated from the models, kept in sync)."""
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 import tomllib
 from pathlib import Path
 
 import pytest
 
+from cli_helpers import cli, one_line_error
 from msps_render.pipeline.config import config_hash, load_config, validate_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,19 +42,6 @@ SWEEP = """
 key = "lights.slant_deg"
 values = [20.0, 40.0, 60.0]
 """
-
-
-def cli(*args, env_extra=None, timeout=300) -> subprocess.CompletedProcess:
-    env = dict(os.environ, MSPS_THREADS="1", **(env_extra or {}))
-    return subprocess.run([sys.executable, "-m", "msps_render.cli", *map(str, args)], capture_output=True,
-                          text=True, env=env, timeout=timeout)
-
-
-def one_line_error(r: subprocess.CompletedProcess) -> str:
-    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert r.returncode == 1, (r.returncode, r.stderr[-2000:])
-    assert len(lines) == 1 and lines[0].startswith("error: "), r.stderr[-2000:]
-    return lines[0]
 
 
 def write(tmp_path: Path, text: str, name: str = "tiny.toml") -> Path:
