@@ -46,10 +46,17 @@ class Frame:
 
     @property
     def crosstalk(self) -> np.ndarray:
-        """3x3 M with M[i, k] = response of channel i to light k (white reflector)."""
+        """(3, K) M, M[i, k] = share of light k's signal in channel i (columns sum to 1).
+
+        Sampled scenes carry it (`SceneSpec.crosstalk`); for a hand-made spec without one it is
+        the lights' RGB with each column scaled to sum 1 -- the same convention as the sampler
+        (RGB = irradiance * M[:, k]) and the spectral mode, so consumers never see two scales.
+        """
         if self.spec.crosstalk is not None:
             return np.array(self.spec.crosstalk, dtype=np.float64)
-        return np.array([l.rgb for l in self.spec.lights], dtype=np.float64).T
+        rgb = np.array([l.rgb for l in self.spec.lights], dtype=np.float64).reshape(-1, 3).T
+        s = rgb.sum(axis=0, keepdims=True)
+        return np.divide(rgb, s, out=np.zeros_like(rgb), where=s > 0)
 
     # ------------------------------------------------------------------ output
     def save(self, out_dir: str | Path) -> list[Path]:

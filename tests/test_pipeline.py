@@ -302,7 +302,7 @@ def test_sensor_noise_has_its_own_stream(tmp_path):
         spec = SceneSpec.from_json(h[K.FRAME_SCENE_JSON].asstr()[1])
     stored = list(iter_frames(out))[1].image
     clean = render_frame(spec, variant=_variant())
-    again = apply_sensor(clean, cfg.scene.sensor, sensor_rng(task, 1)).image
+    again = apply_sensor(clean, cfg.sensor, sensor_rng(task, 1)).image
     np.testing.assert_array_equal(again.astype(stored.dtype), stored)  # as stored (float16 or float32)
-    other = apply_sensor(clean, cfg.scene.sensor, sensor_rng(task, 0)).image  # another frame's stream
+    other = apply_sensor(clean, cfg.sensor, sensor_rng(task, 0)).image  # another frame's stream
     assert not np.array_equal(other, again)

@@ -70,7 +70,7 @@ def test_training_presets_are_measured_detailed_and_at_test_scale():
     for c in (tr, va, rb):
         assert c.scene.shape.source == "procedural" and c.scene.materials.merl_fraction >= 0.5
         assert c.scene.camera.width == 256 and c.dataset.patches.size == 40
-    assert rb.scene.environment.enabled and rb.scene.sensor is not None and rb.scene.lights.slant_range_deg
+    assert rb.scene.environment.enabled and rb.sensor is not None and rb.scene.lights.slant_range_deg
     ac = load_config("train-achromatic")  # grey-heavy supplement, same robust conditions
     assert len({tr.dataset.seed, va.dataset.seed, rb.dataset.seed, ac.dataset.seed}) == 4
     assert ac.scene.shape.source == "procedural" and ac.scene.camera.width == 256

@@ -122,7 +122,7 @@ def test_robustness_presets_match_the_paper():
     assert slant.sweep.key.endswith("lights.slant_deg") and slant.sweep.values == [20, 25, 30, 35, 40]
     for c in (env, slant):
         assert c.scene.shape.n_shapes == 1 and c.scene.shape.pool_seed == 1  # the validation shape
-        assert c.scene.lights.tilts_deg == [0, 120, 240] and c.scene.sensor is None
+        assert c.scene.lights.tilts_deg == [0, 120, 240] and c.sensor is None
         assert c.dataset.storage.store_frames
     conds = [cfg_mod.condition_config(slant, v) for v in slant.sweep.values]
     specs = [sample_scene(c.scene, np.random.default_rng(0)) for c in conds]
@@ -156,7 +156,7 @@ def _frame(image):
 
 
 def test_sensor_model_noise_saturation_quantisation():
-    from msps_render.spectral.config import SensorConfig
+    from msps_render.render.sensor import SensorConfig
     from msps_render.render.sensor import apply_sensor
 
     rng0 = np.random.default_rng(0)
@@ -189,11 +189,50 @@ def test_sensor_model_noise_saturation_quantisation():
 def test_sensor_config_validation():
     from pydantic import ValidationError
 
-    from msps_render.spectral.config import SensorConfig
+    from msps_render.render.sensor import SensorConfig
 
     with pytest.raises(ValidationError):
         SensorConfig(bits=10)
     with pytest.raises(ValidationError):
         SensorConfig(exposure=-1.0)
-    with pytest.raises(ValidationError):
-        SceneConfig.model_validate({"sensor": {"gain": 2}})
+    from msps_render.pipeline.config import DatasetConfig
+
+    with pytest.raises(ValidationError, match="gain"):
+        DatasetConfig.model_validate({"sensor": {"gain": 2}})
+    with pytest.raises(ValidationError):  # the sensor is not part of the scene any more ...
+        SceneConfig.model_validate({"sensor": {"bits": 8}, "camera": {"width": 16}})
+
+
+def test_sensor_is_a_top_level_table_and_old_presets_still_read():
+    """`[sensor]` is configured next to where it is applied (after rendering); a pre-0.2 preset's
+    `[scene.sensor]` reads as the same config (same hash), and giving both is one clear error."""
+    from pydantic import ValidationError
+
+    from msps_render.pipeline.config import DatasetConfig, config_hash
+    from msps_render.render.sensor import SensorConfig
+
+    new = DatasetConfig.model_validate({"sensor": {"bits": 8}})
+    old = DatasetConfig.model_validate({"scene": {"sensor": {"bits": 8}}})
+    assert new.sensor == old.sensor == SensorConfig(bits=8)
+    assert config_hash(new) == config_hash(old)
+    assert DatasetConfig().sensor is None
+    with pytest.raises(ValidationError, match="not both"):
+        DatasetConfig.model_validate({"sensor": {"bits": 8}, "scene": {"sensor": {"bits": 12}}})
+
+
+def test_frame_crosstalk_fallback_has_the_sampler_scale():
+    """A hand-made spec without a crosstalk matrix reads back the lights' RGB with columns summing
+    to 1 -- exactly the sampler's M (its lights have RGB = irradiance * M[:, k])."""
+    from msps_render.calibration import PAPER_CROSSTALK
+    from msps_render.frame import Frame
+    from msps_render.scene.lights import three_lights
+
+    M = np.asarray(PAPER_CROSSTALK, dtype=np.float64)
+    lights = tuple(three_lights(30.0, [0.0, 120.0, 240.0], M, 3.0))
+    spec = SceneSpec(shape=ShapeSpec(kind="sphere"), materials=(lambertian(),), lights=lights)
+    f = Frame(image=np.zeros((4, 4, 3), np.float32), normal=np.zeros((4, 4, 3), np.float32),
+              mask=np.ones((4, 4), bool), depth=np.zeros((4, 4), np.float32),
+              part=np.zeros((4, 4), np.int8), spec=spec)
+    np.testing.assert_allclose(f.crosstalk, M, atol=1e-12)
+    stored = spec.model_copy(update={"crosstalk": tuple(tuple(r) for r in M.tolist())})
+    np.testing.assert_array_equal(Frame(**{**f.__dict__, "spec": stored}).crosstalk, M)

@@ -1,7 +1,8 @@
 """`DatasetConfig`: a dataset preset (TOML) validated with clear, named errors.
 
 A preset is a `[dataset]` table (shards, frames, patches, storage) plus a
-`[scene]` table mirroring `SceneConfig`, and optionally a `[sweep]` that
+`[scene]` table mirroring `SceneConfig`, optionally a `[sensor]` table (the
+camera's noise model, applied after rendering), and optionally a `[sweep]` that
 renders the same scenes under several values of one setting (e.g. the
 environment-light ratio or the slant), one condition each.
 """
@@ -17,6 +18,7 @@ from pydantic import Field, PrivateAttr, model_validator
 from msps_render import resources
 from msps_render.config_io import StrictModel, apply_overrides, read_toml, set_path, validate
 from msps_render.errors import InputError
+from msps_render.render.sensor import SensorConfig
 from msps_render.scene.sample import SceneConfig
 
 PRESET_DIR = resources.data_dir("scenes")  # where `load_config("<name>")` looks (see msps_render.resources)
@@ -54,8 +56,21 @@ class SweepConfig(StrictModel):
 class DatasetConfig(StrictModel):
     dataset: DatasetSection = DatasetSection()
     scene: SceneConfig = SceneConfig()
+    sensor: SensorConfig | None = Field(None, description="camera sensor model applied after rendering "
+                                                          "(absent: the image is the rendered radiance)")
     sweep: SweepConfig | None = None
     _source: str | None = PrivateAttr(default=None)  # the TOML it was read from (for error lines)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _legacy_scene_sensor(cls, data: Any) -> Any:
+        """Presets before 0.2 spelled the sensor `[scene.sensor]`; read it as `[sensor]`."""
+        if isinstance(data, dict) and isinstance(data.get("scene"), dict) and "sensor" in data["scene"]:
+            if data.get("sensor") is not None:
+                raise ValueError("sensor: give either [sensor] or the old [scene.sensor], not both")
+            data = {**data, "scene": {k: v for k, v in data["scene"].items() if k != "sensor"},
+                    "sensor": data["scene"]["sensor"]}
+        return data
 
     @model_validator(mode="after")
     def _check(self) -> "DatasetConfig":

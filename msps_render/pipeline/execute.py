@@ -54,8 +54,8 @@ def render_shard(task: Task, ws: WorkerSettings) -> dict:
         tr = time.perf_counter()
         frame = render_frame(spec, variant=ws.variant, threads=ws.threads)
         render_s += time.perf_counter() - tr
-        sensor = getattr(cfg.scene, "sensor", None)  # optional sensor model (render/sensor.py), own noise stream
-        if sensor is not None and getattr(sensor, "enabled", True):
+        sensor = cfg.sensor  # optional sensor model (render/sensor.py), its own noise stream
+        if sensor is not None and sensor.enabled:
             frame = apply_sensor(frame, sensor, sensor_rng(task, j))
         p = patchify(frame, d.patches.size, d.patches.stride, d.patches.min_coverage)
         pats.append(p)

@@ -1,5 +1,10 @@
 """Optional sensor model: exposure, Poisson-Gaussian noise, saturation, quantisation.
 
+Configured here (`SensorConfig`, the top-level `[sensor]` table of a preset) and
+applied here: the pipeline runs it after rendering, on each frame's own noise
+stream (`pipeline.plan.sensor_rng`).  It is not part of the scene: the same
+scene recorded by another camera is the same scene.
+
 `apply_sensor(frame, cfg, rng)` returns a new Frame whose `image` is what a
 camera would record (in radiance units, see `SensorConfig`), with the noiseless
 radiance kept in `clean_image`.  Per-light and environment images stay clean
@@ -9,11 +14,41 @@ for a given `rng` state; the paper presets leave it off.
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 import numpy as np
+from pydantic import Field, field_validator
 
+from msps_render.config_io import StrictModel
 from msps_render.frame import Frame
-from msps_render.spectral.config import SensorConfig
+
+
+class SensorConfig(StrictModel):
+    """Camera sensor: exposure, Poisson-Gaussian noise, saturation, quantisation.
+
+    Model (per pixel and channel, x = radiance): s = clip(exposure*x, 0, 1) is the
+    fraction of full well; electrons ~ Poisson(s*full_well_e) + Normal(0, read_noise_e);
+    clipped to [0, full_well_e]; digitised to `bits` (DN = round(e/full_well_e*(2^bits-1)));
+    the stored image is DN converted back to radiance units (DN/(2^bits-1)/exposure),
+    so it saturates at 1/exposure.  `exposure = "auto"` picks exposure so the
+    `auto_percentile` of object pixels lands at `auto_level` of full well.
+    """
+
+    enabled: bool = True
+    exposure: float | Literal["auto"] = "auto"
+    auto_percentile: float = Field(99.0, gt=0, le=100)
+    auto_level: float = Field(0.8, gt=0, le=1.0)
+    full_well_e: float = Field(10000.0, gt=0)
+    read_noise_e: float = Field(3.0, ge=0)
+    poisson: bool = True
+    bits: Literal[8, 12, 16] = 12
+
+    @field_validator("exposure")
+    @classmethod
+    def _exp(cls, v):
+        if v != "auto" and not (v > 0):
+            raise ValueError("exposure must be > 0 or 'auto'")
+        return v
 
 
 def auto_exposure(image: np.ndarray, mask: np.ndarray | None, cfg: SensorConfig) -> float:

@@ -24,7 +24,7 @@ from msps_render.scene.materials import sample_analytic, sample_materials
 from msps_render.scene.primitives import PRIMITIVES, sample_primitive_params, unknown_primitive
 from msps_render.scene.shapes import random_rotation, sample_split
 from msps_render.scene.spec import CameraSpec, EnvSpec, IntegratorSpec, SceneSpec, ShapeSpec
-from msps_render.spectral.config import SensorConfig, SpectralConfig
+from msps_render.spectral.config import SpectralConfig
 from msps_render.spectral.crosstalk import effective_crosstalk
 
 
@@ -161,12 +161,11 @@ class SceneConfig(StrictModel):
     environment: EnvironmentConfig = EnvironmentConfig()
     camera: CameraSpec = CameraSpec()
     integrator: IntegratorSpec = IntegratorSpec()
-    # spectral mode / sensor: `spectral` is used when mode == "spectral" (defaults if
-    # absent); `sensor` is applied after rendering by `msps_render.render.sensor.apply_sensor`.
+    # spectral mode: `spectral` is used when mode == "spectral" (defaults if absent).  The camera's
+    # sensor model is not part of the scene: it is the preset's top-level `[sensor]` table.
     mode: Literal["rgb", "spectral"] = Field("rgb", description="rgb: crosstalk matrix given; spectral: "
                                                                  "light spectra x camera sensitivities")
     spectral: SpectralConfig | None = None
-    sensor: SensorConfig | None = None
 
 
 def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator, frame_index: int | None = None) -> ShapeSpec:

@@ -1,10 +1,9 @@
 """Spectral model (numpy): light spectra, camera sensitivities, effective crosstalk, and the
-spectral and sensor configs.  Rendering with them is `msps_render.render.spectral` and
-`msps_render.render.sensor`."""
-from msps_render.spectral.config import SensorConfig, SpectralConfig
+spectral config.  Rendering with them is `msps_render.render.spectral`."""
+from msps_render.spectral.config import SpectralConfig
 from msps_render.spectral.crosstalk import effective_crosstalk, response_matrix
 from msps_render.spectral.spectra import (WL_MAX, WL_MIN, camera_sensitivities, known_cameras,
                                           light_spectrum)
 
-__all__ = ["SpectralConfig", "SensorConfig", "effective_crosstalk", "response_matrix", "light_spectrum",
+__all__ = ["SpectralConfig", "effective_crosstalk", "response_matrix", "light_spectrum",
            "camera_sensitivities", "known_cameras", "WL_MIN", "WL_MAX"]

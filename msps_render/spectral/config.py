@@ -1,10 +1,8 @@
-"""Pydantic configs for the spectral mode and the optional sensor model.
+"""Pydantic config for the spectral mode; it lives inside `SceneConfig` (`scene.spectral` in TOML).
 
-They live inside `SceneConfig` (`scene.spectral`, `scene.sensor` in TOML).
+The sensor model's config is `render.sensor.SensorConfig`, next to the code that applies it.
 """
 from __future__ import annotations
-
-from typing import Literal
 
 from pydantic import Field, field_validator
 
@@ -35,31 +33,3 @@ class SpectralConfig(StrictModel):
     @classmethod
     def _camera(cls, v):
         return validate_camera_id(v)
-
-
-class SensorConfig(StrictModel):
-    """Camera sensor: exposure, Poisson-Gaussian noise, saturation, quantisation.
-
-    Model (per pixel and channel, x = radiance): s = clip(exposure*x, 0, 1) is the
-    fraction of full well; electrons ~ Poisson(s*full_well_e) + Normal(0, read_noise_e);
-    clipped to [0, full_well_e]; digitised to `bits` (DN = round(e/full_well_e*(2^bits-1)));
-    the stored image is DN converted back to radiance units (DN/(2^bits-1)/exposure),
-    so it saturates at 1/exposure.  `exposure = "auto"` picks exposure so the
-    `auto_percentile` of object pixels lands at `auto_level` of full well.
-    """
-
-    enabled: bool = True
-    exposure: float | Literal["auto"] = "auto"
-    auto_percentile: float = Field(99.0, gt=0, le=100)
-    auto_level: float = Field(0.8, gt=0, le=1.0)
-    full_well_e: float = Field(10000.0, gt=0)
-    read_noise_e: float = Field(3.0, ge=0)
-    poisson: bool = True
-    bits: Literal[8, 12, 16] = 12
-
-    @field_validator("exposure")
-    @classmethod
-    def _exp(cls, v):
-        if v != "auto" and not (v > 0):
-            raise ValueError("exposure must be > 0 or 'auto'")
-        return v
