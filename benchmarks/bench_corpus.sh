@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# The full paper corpus (paper-train 232 shards + paper-val 26 shards), rendered end to end by two
+# versions of the code back to back on the same machine, wall time each (docs/benchmarks.md).
+#
+#   bash benchmarks/bench_corpus.sh OLD_REF NEW_REF OUT [WORKERS]
+#   e.g. bash benchmarks/bench_corpus.sh c72a7ec HEAD /tmp/corpus 2
+#
+# Each ref is checked out into OUT/src-<ref> (git worktree) and run with this checkout's venv
+# (`PYTHONPATH` = that tree, so presets, brdf/ and the code are the ref's own).  The baked
+# Neural-BRDF tables are shared through one MSPS_CACHE_DIR, warmed before timing starts, so
+# neither run pays the one-off bake.  Results: OUT/results.tsv (ref, preset, seconds, patches).
+set -euo pipefail
+old=${1:?OLD_REF}; new=${2:?NEW_REF}; out=${3:?OUT}; workers=${4:-2}
+root=$(cd "$(dirname "$0")/.." && pwd)
+py="$root/.venv/bin/python"
+mkdir -p "$out"
+export MSPS_CACHE_DIR="$out/cache" OMP_WAIT_POLICY=PASSIVE
+: > "$out/results.tsv"
+
+src() {  # a worktree of ref $1 under OUT (reused when present)
+  local d="$out/src-$(git -C "$root" rev-parse --short "$1")"
+  [ -d "$d" ] || git -C "$root" worktree add -q --detach "$d" "$1"
+  echo "$d"
+}
+
+oldsrc=$(src "$old"); newsrc=$(src "$new")
+# warm the baked-table cache (and the import caches) with a 1-shard render of each
+for s in "$oldsrc" "$newsrc"; do
+  PYTHONPATH="$s" "$py" -m msps_render.cli render paper-train --out "$out/warm" --force \
+      --set dataset.n_shards=1 --workers 1 > /dev/null
+done
+rm -rf "$out/warm"
+
+for s in "$oldsrc" "$newsrc"; do
+  ref=$(git -C "$s" rev-parse --short HEAD)
+  for preset in paper-train paper-val; do
+    d="$out/$ref/$preset"
+    rm -rf "$d"
+    t0=$(date +%s.%N)
+    PYTHONPATH="$s" "$py" -m msps_render.cli render "$preset" --out "$d" --workers "$workers" > "$out/$ref-$preset.log" 2>&1
+    t1=$(date +%s.%N)
+    n=$("$py" -c "import json,sys; print(json.load(open(sys.argv[1]))['n_patches'])" "$d/dataset.json")
+    printf '%s\t%s\t%.1f\t%s\n' "$ref" "$preset" "$(echo "$t1 - $t0" | bc)" "$n" | tee -a "$out/results.tsv"
+  done
+done
