@@ -13,6 +13,7 @@ from msps_render.render.materials import to_mitsuba
 from msps_render.scene.envmap import envmap_pixels
 from msps_render.scene.shapes import build_mesh, face_parts
 from msps_render.scene.spec import SceneSpec
+from msps_render.timing import StageTimer, stage
 
 ENV_KEY = "environment"
 
@@ -40,32 +41,39 @@ def _sensor(mi, spec: SceneSpec) -> dict:
             "near_clip": 0.01, "far_clip": 2 * c.distance + 10, "film": film, "sampler": sampler}
 
 
-def _shapes(mi, spec: SceneSpec) -> dict:
+def _bsdf(mi, spec: SceneSpec, p: int, timer: StageTimer | None):
+    """Part p's loaded BSDF (measured tables are read or baked on first use: timed as 'materials')."""
+    with stage(timer, "materials"):
+        return mi.load_dict(to_mitsuba(spec.materials[p]))
+
+
+def _shapes(mi, spec: SceneSpec, timer: StageTimer | None = None) -> dict:
     """Mitsuba shapes (one per material part), built from memory."""
     import drjit as dr
 
     if spec.shape.kind == "sphere":
-        return {"part0": {"type": "sphere", "radius": spec.shape.radius, "bsdf": to_mitsuba(spec.materials[0])}}
-    mesh = build_mesh(spec.shape)
-    parts = face_parts(mesh, spec.split)
-    out = {}
-    for p in range(int(parts.max()) + 1):
-        faces = mesh.faces[parts == p]
-        if len(faces) == 0:
-            continue
-        used = np.unique(faces)
-        remap = np.zeros(len(mesh.vertices), dtype=np.uint32)
-        remap[used] = np.arange(len(used), dtype=np.uint32)
-        props = mi.Properties()
-        props["bsdf"] = mi.load_dict(to_mitsuba(spec.materials[p]))
-        m = mi.Mesh(f"part{p}", len(used), len(faces), props=props, has_vertex_normals=True)
-        params = mi.traverse(m)
-        params["vertex_positions"] = dr.ravel(mi.TensorXf(mesh.vertices[used]))
-        params["faces"] = dr.ravel(mi.TensorXu(remap[faces]))
-        params["vertex_normals"] = dr.ravel(mi.TensorXf(mesh.normals[used]))
-        params.update()
-        out[f"part{p}"] = m
-    return out
+        return {"part0": {"type": "sphere", "radius": spec.shape.radius, "bsdf": _bsdf(mi, spec, 0, timer)}}
+    with stage(timer, "mesh"):  # the BSDFs inside are timed apart (nested stage)
+        mesh = build_mesh(spec.shape)
+        parts = face_parts(mesh, spec.split)
+        out = {}
+        for p in range(int(parts.max()) + 1):
+            faces = mesh.faces[parts == p]
+            if len(faces) == 0:
+                continue
+            used = np.unique(faces)
+            remap = np.zeros(len(mesh.vertices), dtype=np.uint32)
+            remap[used] = np.arange(len(used), dtype=np.uint32)
+            props = mi.Properties()
+            props["bsdf"] = _bsdf(mi, spec, p, timer)
+            m = mi.Mesh(f"part{p}", len(used), len(faces), props=props, has_vertex_normals=True)
+            params = mi.traverse(m)
+            params["vertex_positions"] = dr.ravel(mi.TensorXf(mesh.vertices[used]))
+            params["faces"] = dr.ravel(mi.TensorXu(remap[faces]))
+            params["vertex_normals"] = dr.ravel(mi.TensorXf(mesh.normals[used]))
+            params.update()
+            out[f"part{p}"] = m
+        return out
 
 
 def _envmap(mi, spec: SceneSpec) -> dict:
@@ -75,15 +83,21 @@ def _envmap(mi, spec: SceneSpec) -> dict:
             "scale": float(e.scale), "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], e.rotation_deg)}
 
 
-def build_scene_dict(spec: SceneSpec, mi) -> dict:
-    """The `mi.load_dict` description of a SceneSpec (needs the variant set)."""
+def build_scene_dict(spec: SceneSpec, mi, timer: StageTimer | None = None) -> dict:
+    """The `mi.load_dict` description of a SceneSpec (needs the variant set); `timer` times
+    mesh building and material loading apart from the rest ('scene dict')."""
+    with stage(timer, "scene dict"):
+        return _scene_dict(spec, mi, timer)
+
+
+def _scene_dict(spec: SceneSpec, mi, timer: StageTimer | None) -> dict:
     integ = spec.integrator
     if integ.kind == "path":
         integrator = {"type": "path", "max_depth": integ.max_depth, "hide_emitters": True}
     else:
         integrator = {"type": "direct", "hide_emitters": True}
     d = {"type": "scene", "integrator": integrator, "sensor": _sensor(mi, spec)}
-    d.update(_shapes(mi, spec))
+    d.update(_shapes(mi, spec, timer))
     for k, l in enumerate(spec.lights):
         if l.kind == "directional":
             d[light_key(k)] = {"type": "directional", "direction": [-c for c in l.direction],
