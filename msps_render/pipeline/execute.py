@@ -28,7 +28,7 @@ from msps_render.patches import patchify
 from msps_render.pipeline.config import DatasetConfig
 from msps_render.pipeline.plan import Task, frame_rngs, frame_seed, sensor_rng
 from msps_render.render import render_frame
-from msps_render.render.memory import release_frame_memory
+from msps_render.render.memory import kernel_cache_misses, release_frame_memory
 from msps_render.render.sensor import apply_sensor
 from msps_render.render.variant import activate, mitsuba_info
 from msps_render.scene.sample import sample_scene
@@ -58,6 +58,7 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
         with stage(timer, "sample"):
             spec = sample_scene(cfg.scene, rng, seed=fseed,
                                 frame_index=task.shard_in_condition * d.frames_per_shard + j)
+        misses0 = kernel_cache_misses()
         tr = time.perf_counter()
         frame = render_frame(spec, variant=ws.variant, threads=ws.threads, timer=timer)
         render_s += time.perf_counter() - tr
@@ -70,7 +71,7 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
         pats.append(p)
         fidx.append(np.full(len(p), j, np.int32))
         with stage(timer, "release memory"):
-            release_frame_memory()  # flat worker memory (drjit kernel cache), docs/benchmarks.md
+            release_frame_memory(misses0)  # flat worker memory, kernels kept for the next scene (docs/benchmarks.md)
         env = spec.environment
         with stage(timer, "frame record"):
             frames.append(FrameRecord(
