@@ -28,8 +28,9 @@ def render_frame(spec: SceneSpec, variant: str | None = None, threads: int | Non
     `timer` (optional) times the steps (benchmarks/bench_breakdown.py)."""
     variant = variant or resolve_variant(spec.mode)
     mi = activate(variant, threads)
-    if spec.mode == "spectral":
-        return render_spectral_frame(spec, mi, variant, per_light=per_light)
+    if spec.mode == "spectral":  # not split into steps: all of it is timed as "render"
+        with stage(timer, "render"):
+            return render_spectral_frame(spec, mi, variant, per_light=per_light)
     d = build_scene_dict(spec, mi, timer)
     with stage(timer, "scene load"):
         scene = mi.load_dict(d)
