@@ -15,7 +15,9 @@ and MiB per 1000 frames (least-squares slope over the post-warm-up samples).
 `kernel` / `malloc` (only drjit's kernel or malloc cache flush); `flush`
 (gc.collect() + drjit kernel and malloc cache flush); `trim` (gc + kernel
 flush + glibc malloc_trim(0)); `worker` (default: what pipeline workers do,
-`msps_render.render.memory.release_frame_memory()`).  Results: docs/benchmarks.md.
+`msps_render.render.memory.release_frame_memory(misses_before)`: the kernel cache
+is flushed only every `KERNEL_BUDGET` new kernels); `worker-flush` (the same with
+the kernel cache flushed after every frame, the behaviour before issue 12).  Results: docs/benchmarks.md.
 `--repro`: the same loop with only `mitsuba.load_dict` + `mitsuba.render` of a
 fresh in-memory mesh each frame (no msps code, no caches of ours) — the
 minimal repro used to tell whether growth is inside Mitsuba/drjit.
@@ -80,7 +82,7 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--cleanup", default="worker",
-                    choices=("none", "gc", "kernel", "malloc", "flush", "worker", "trim"))
+                    choices=("none", "gc", "kernel", "malloc", "flush", "worker", "worker-flush", "trim"))
     ap.add_argument("--repro", action="store_true", help="bare Mitsuba loop (no msps code)")
     args = ap.parse_args()
 
@@ -94,7 +96,7 @@ def main() -> None:
     if not args.repro:
         from msps_render.patches import patchify
         from msps_render.render import render_frame
-        from msps_render.render.memory import release_frame_memory
+        from msps_render.render.memory import kernel_cache_misses, release_frame_memory
         from msps_render.scene.sample import SceneConfig, sample_scene
         from msps_render.scene.spec import CameraSpec, IntegratorSpec
 
@@ -105,6 +107,7 @@ def main() -> None:
     samples: list[tuple[int, float]] = [(0, rss_mib())]
     t0 = time.perf_counter()
     for i in range(1, args.frames + 1):
+        misses0 = kernel_cache_misses() if not args.repro else 0
         if args.repro:
             _repro_frame(mi, dr, rng, True)
         else:
@@ -123,6 +126,8 @@ def main() -> None:
             dr.flush_kernel_cache()
             dr.flush_malloc_cache()
         elif args.cleanup == "worker" and not args.repro:
+            release_frame_memory(misses0)
+        elif args.cleanup == "worker-flush" and not args.repro:
             release_frame_memory()
         elif args.cleanup == "trim":
             gc.collect()

@@ -28,10 +28,11 @@ from msps_render.patches import patchify
 from msps_render.pipeline.config import DatasetConfig
 from msps_render.pipeline.plan import Task, frame_rngs, frame_seed, sensor_rng
 from msps_render.render import render_frame
-from msps_render.render.memory import release_frame_memory
+from msps_render.render.memory import kernel_cache_misses, release_frame_memory
 from msps_render.render.sensor import apply_sensor
 from msps_render.render.variant import activate, mitsuba_info
 from msps_render.scene.sample import sample_scene
+from msps_render.timing import StageTimer, stage
 
 
 @dataclass(frozen=True)
@@ -41,8 +42,12 @@ class WorkerSettings:
     threads: int | None = None
 
 
-def render_shard(task: Task, ws: WorkerSettings) -> dict:
-    """Sample, render, patchify and write one shard. Returns its manifest entry."""
+def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None) -> dict:
+    """Sample, render, patchify and write one shard. Returns its manifest entry.
+
+    `timer` (optional) times every step frame by frame (benchmarks/bench_breakdown.py);
+    the shard's write is shared out evenly over its frames.
+    """
     cfg = DatasetConfig.model_validate_json(task.config_json)
     d = cfg.dataset
     t0 = time.perf_counter()
@@ -50,30 +55,40 @@ def render_shard(task: Task, ws: WorkerSettings) -> dict:
     pats, fidx, frames = [], [], []
     for j, rng in enumerate(frame_rngs(task, d.frames_per_shard)):
         fseed = frame_seed(task, j)
-        spec = sample_scene(cfg.scene, rng, seed=fseed, frame_index=task.shard_in_condition * d.frames_per_shard + j)
+        with stage(timer, "sample"):
+            spec = sample_scene(cfg.scene, rng, seed=fseed,
+                                frame_index=task.shard_in_condition * d.frames_per_shard + j)
+        misses0 = kernel_cache_misses()
         tr = time.perf_counter()
-        frame = render_frame(spec, variant=ws.variant, threads=ws.threads)
+        frame = render_frame(spec, variant=ws.variant, threads=ws.threads, timer=timer)
         render_s += time.perf_counter() - tr
         sensor = cfg.sensor  # optional sensor model (render/sensor.py), its own noise stream
         if sensor is not None and sensor.enabled:
-            frame = apply_sensor(frame, sensor, sensor_rng(task, j))
-        p = patchify(frame, d.patches.size, d.patches.stride, d.patches.min_coverage)
+            with stage(timer, "sensor"):
+                frame = apply_sensor(frame, sensor, sensor_rng(task, j))
+        with stage(timer, "patchify"):
+            p = patchify(frame, d.patches.size, d.patches.stride, d.patches.min_coverage)
         pats.append(p)
         fidx.append(np.full(len(p), j, np.int32))
-        release_frame_memory()  # flat worker memory (drjit kernel cache), docs/benchmarks.md
+        with stage(timer, "release memory"):
+            release_frame_memory(misses0)  # flat worker memory, kernels kept for the next scene (docs/benchmarks.md)
         env = spec.environment
-        frames.append(FrameRecord(
-            scene_json=spec.to_json(indent=None), light_dirs=frame.light_dirs, crosstalk=frame.crosstalk,
-            light_rgb=np.array([l.rgb for l in spec.lights]), slant_deg=float(np.mean(
-                [l.slant_deg for l in spec.lights if l.slant_deg is not None] or [np.nan])),
-            env_ratio=float(env.ratio or 0.0) if env else 0.0,
-            env_rotation_deg=float(env.rotation_deg) if env else 0.0, spp=spec.integrator.spp,
-            frame_seed=fseed, object=spec.shape.name or spec.shape.kind,
-            materials=";".join(m.name for m in spec.materials), condition=task.condition,
-            image=frame.image if d.storage.store_frames else None,
-            normal=frame.normal if d.storage.store_frames else None,
-            mask=frame.mask if d.storage.store_frames else None))
+        with stage(timer, "frame record"):
+            frames.append(FrameRecord(
+                scene_json=spec.to_json(indent=None), light_dirs=frame.light_dirs, crosstalk=frame.crosstalk,
+                light_rgb=np.array([l.rgb for l in spec.lights]), slant_deg=float(np.mean(
+                    [l.slant_deg for l in spec.lights if l.slant_deg is not None] or [np.nan])),
+                env_ratio=float(env.ratio or 0.0) if env else 0.0,
+                env_rotation_deg=float(env.rotation_deg) if env else 0.0, spp=spec.integrator.spp,
+                frame_seed=fseed, object=spec.shape.name or spec.shape.kind,
+                materials=";".join(m.name for m in spec.materials), condition=task.condition,
+                image=frame.image if d.storage.store_frames else None,
+                normal=frame.normal if d.storage.store_frames else None,
+                mask=frame.mask if d.storage.store_frames else None))
+        if timer is not None:
+            timer.end_frame()
     P = d.patches.size
+    tw = time.perf_counter()
     cat = Patches.concat(pats, P)
     attrs = {"toolkit_version": msps_render.__version__, "mitsuba_version": mitsuba_info()["mitsuba"],
              "variant": ws.variant, "config_hash": _hash(task.config_json), "seed": task.seed,
@@ -82,6 +97,10 @@ def render_shard(task: Task, ws: WorkerSettings) -> dict:
     info = write_shard(out, ShardContent(cat, np.concatenate(fidx) if fidx else np.zeros(0, np.int32), frames,
                                          attrs), d.storage.compression, d.storage.image_dtype,
                        d.storage.normal_dtype)
+    if timer is not None and frames:
+        share = (time.perf_counter() - tw) / len(frames)
+        for f in timer.frames[-len(frames):]:
+            f["write"] = f.get("write", 0.0) + share
     info.update(condition=task.condition, render_seconds=render_s, wall_seconds=time.perf_counter() - t0)
     return info
 

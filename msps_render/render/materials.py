@@ -40,8 +40,12 @@ def _roughconductor(p: dict) -> dict:
 
 
 def _principled(p: dict) -> dict:
+    # `metallic` as a texture, never a bare float: Mitsuba's principled BSDF leaves out its
+    # metallic code when given the float 0, so metallic and non-metallic materials compiled
+    # different kernels; as a texture both share one (images equal to float rounding).
     return {"type": "principled", "base_color": _rgb(p.get("base_color", 0.5)),
-            "roughness": float(p.get("roughness", 0.5)), "metallic": float(p.get("metallic", 0.0)),
+            "roughness": float(p.get("roughness", 0.5)),
+            "metallic": {"type": "uniform", "value": float(p.get("metallic", 0.0))},
             "specular": float(p.get("specular", 0.5))}
 
 

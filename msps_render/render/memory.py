@@ -2,27 +2,56 @@
 from __future__ import annotations
 
 
-def release_frame_memory() -> None:
+KERNEL_BUDGET = 128  # kernels drjit may add to its in-memory cache between two flushes (~0.15 MiB each)
+
+
+def kernel_cache_misses() -> int:
+    """Kernels drjit has added to its in-memory cache in this process so far (compiled by LLVM
+    or loaded from its disk cache): `dr.detail.launch_stats()`'s soft + hard misses; 0 without JIT."""
+    try:
+        import drjit as dr
+
+        _, soft, hard = dr.detail.launch_stats()
+        return int(soft) + int(hard)
+    except Exception:  # no JIT backend / older drjit
+        return 0
+
+
+def release_frame_memory(misses_before: int | None = None, budget: int = KERNEL_BUDGET) -> None:
     """Free what a finished frame left behind; pipeline workers call it after every frame.
 
     Two sources of unbounded worker growth, both outside our code
     (benchmarks/bench_memory.py, docs/benchmarks.md "Worker memory"):
-    drjit keeps every kernel it ever compiled and each new scene compiles a few
-    (the bare-Mitsuba `--repro` loop grows ~0.16 MiB per frame too), and glibc
-    keeps freed heap in its arenas (a slow creep and ~20 MiB steps once the kernel
-    cache is flushed, worst under CPU contention).  Flushing drjit's kernel and
-    malloc caches, capping glibc's arenas and `malloc_trim(0)` keep RSS flat for
-    ~1-5% of a paper-size frame's time.  `gc.collect()` first so scenes
-    held by reference cycles release their buffers.
+    drjit keeps every kernel it ever compiled, and glibc keeps freed heap in its
+    arenas (a slow creep and ~20 MiB steps, worst under CPU contention).
+    The garbage collector runs first so objects in reference cycles are freed
+    (per frame: ~60 small objects, the classes `mi.traverse` defines on each
+    call; scenes themselves are freed by reference counting); then drjit's
+    malloc cache is flushed, glibc is capped at 2 arenas and `malloc_trim(0)`
+    returns the heap.  Only the young generations are collected per frame
+    (<1 ms); a full collection walks every live object (~110k, 50-70 ms a frame)
+    and runs only when the kernel cache is flushed, and of course whenever
+    Python's own thresholds trigger one.
+
+    The kernel cache: scenes of one structure now share their kernels
+    (docs/architecture.md "Kernels reused across scenes"), so flushing it after
+    every frame threw away exactly what the next frame needs.  With
+    `misses_before` (`kernel_cache_misses()` at the start of the frame) it is
+    flushed only when the running count of kernels added to it crosses a
+    multiple of `budget` during this frame, so it never holds more than `budget`
+    plus one frame's kernels (~20 MiB) and memory stays bounded.  Without
+    `misses_before` it is flushed every time (the old behaviour).
     """
     import gc
 
     import drjit as dr
 
-    gc.collect()
+    flush_kernels = misses_before is None or kernel_cache_misses() // budget > misses_before // budget
+    gc.collect(2 if flush_kernels else 1)
     try:
         dr.sync_thread()
-        dr.flush_kernel_cache()
+        if flush_kernels:
+            dr.flush_kernel_cache()
         dr.flush_malloc_cache()
     except Exception:  # scalar variants / no JIT backend: nothing cached
         pass

@@ -187,8 +187,12 @@ def _plugin_class(variant: str):
                 alpha = float(props["lobe_alpha"])
             if "lobe_weight" in props:
                 weight = float(props["lobe_weight"])
-            self.alpha = float(min(max(alpha, 1e-3), 1.0))
-            self.weight = float(min(max(weight, 0.0), 1.0))
+            self.lobe = (float(min(max(alpha, 1e-3), 1.0)), float(min(max(weight, 0.0), 1.0)))
+            # Opaque per-scene scalars (JIT variants): a Python float would be baked into the
+            # kernel as a literal, so every table (own alpha and weight) would compile its own
+            # megakernel; as opaque Floats they are kernel inputs and scenes share kernels.
+            self.alpha, self.weight = ((dr.opaque(mi.Float, v) for v in self.lobe) if dr.is_jit_v(mi.Float)
+                                       else self.lobe)
             self.spectral = mi.is_spectral
             self.grid = _coeff_grid(variant) if self.spectral else None
             self.m_components = [flags]
@@ -204,13 +208,14 @@ def _plugin_class(variant: str):
         def _pdf(self, wi, wo):
             cos_o = dr.maximum(mi.Frame3f.cos_theta(wo), 0.0)
             pdf = (1.0 - self.weight) * cos_o * (1.0 / math.pi)
-            if self.weight > 0.0:
-                distr = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, self.alpha, True)
-                m = dr.normalize(wi + wo)
-                dwo = dr.dot(wo, m)
-                p_m = distr.pdf(wi, m)
-                pdf += self.weight * dr.select(dwo > 0, p_m / (4.0 * dr.maximum(dwo, 1e-12)), 0.0)
-            return pdf
+            # No Python `if` on the weight: the lobe is always traced (and selected away at
+            # weight 0), so tables with and without a lobe share one kernel.
+            distr = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, self.alpha, True)
+            m = dr.normalize(wi + wo)
+            dwo = dr.dot(wo, m)
+            p_m = distr.pdf(wi, m)
+            lobe = dr.select(dwo > 0, p_m / (4.0 * dr.maximum(dwo, 1e-12)), 0.0)
+            return pdf + dr.select(self.weight > 0.0, self.weight * lobe, 0.0)
 
         def _eval_pdf(self, ctx, si, wo, active):
             cos_i = mi.Frame3f.cos_theta(si.wi)
@@ -238,10 +243,9 @@ def _plugin_class(variant: str):
             cos_i = mi.Frame3f.cos_theta(si.wi)
             active = active & (cos_i > 0)
             wo = mi.warp.square_to_cosine_hemisphere(sample2)
-            if self.weight > 0.0:
-                distr = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, self.alpha, True)
-                m, _ = distr.sample(si.wi, sample2)
-                wo = dr.select(sample1 < self.weight, mi.reflect(si.wi, m), wo)
+            distr = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, self.alpha, True)
+            m, _ = distr.sample(si.wi, sample2)
+            wo = dr.select(sample1 < self.weight, mi.reflect(si.wi, m), wo)  # never at weight 0
             value, pdf = self._eval_pdf(ctx, si, wo, active)
             active = active & (pdf > 0)
             bs = dr.zeros(mi.BSDFSample3f)
@@ -260,8 +264,8 @@ def _plugin_class(variant: str):
             pass
 
         def to_string(self):
-            return (f"MerlBSDF[filename='{self.filename}', lobe_alpha={self.alpha:.4f}, "
-                    f"lobe_weight={self.weight:.3f}]")
+            return (f"MerlBSDF[filename='{self.filename}', lobe_alpha={self.lobe[0]:.4f}, "
+                    f"lobe_weight={self.lobe[1]:.3f}]")
 
     return MerlBSDF
 

@@ -19,19 +19,25 @@ from msps_render.render.scene_dict import build_scene_dict
 from msps_render.render.spectral import render_spectral_frame
 from msps_render.render.variant import activate, resolve_variant
 from msps_render.scene.spec import SceneSpec
+from msps_render.timing import StageTimer, stage
 
 
 def render_frame(spec: SceneSpec, variant: str | None = None, threads: int | None = None,
-                 per_light: bool = False) -> Frame:
-    """Render one scene. `variant=None` resolves the best working variant for `spec.mode`."""
+                 per_light: bool = False, timer: StageTimer | None = None) -> Frame:
+    """Render one scene. `variant=None` resolves the best working variant for `spec.mode`.
+    `timer` (optional) times the steps (benchmarks/bench_breakdown.py)."""
     variant = variant or resolve_variant(spec.mode)
     mi = activate(variant, threads)
-    if spec.mode == "spectral":
-        return render_spectral_frame(spec, mi, variant, per_light=per_light)
-    scene = mi.load_dict(build_scene_dict(spec, mi))
-    normal, mask, depth, part = ground_truth(mi, scene, spec)
-
-    images = render_emitters_separately(mi, scene, spec)
+    if spec.mode == "spectral":  # not split into steps: all of it is timed as "render"
+        with stage(timer, "render"):
+            return render_spectral_frame(spec, mi, variant, per_light=per_light)
+    d = build_scene_dict(spec, mi, timer)
+    with stage(timer, "scene load"):
+        scene = mi.load_dict(d)
+    with stage(timer, "ground truth"):
+        normal, mask, depth, part = ground_truth(mi, scene, spec)
+    with stage(timer, "render"):
+        images = render_emitters_separately(mi, scene, spec)
     env_img = images.pop() if spec.environment is not None else None
     per = np.stack(images) if images else np.zeros((0,) + normal.shape, np.float32)
     image = per.sum(axis=0) + (env_img if env_img is not None else 0.0)

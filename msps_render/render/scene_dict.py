@@ -4,6 +4,13 @@ Shapes are built from memory (`mi.Mesh` + `mi.traverse` buffers, one Mitsuba
 shape per material part), materials go through `render.materials.to_mitsuba`,
 the environment becomes an `envmap` emitter over the map's pixels.  Emitters
 have fixed ids (`light_key(k)`, `ENV_KEY`) so renderers can switch them.
+
+Kernel reuse (docs/architecture.md "Kernels reused across scenes"): per-scene
+numbers must reach drjit as data, not as literals baked into the kernels, or
+every scene compiles its own.  Two scene-level literals are avoided here: the
+scene's bounding sphere, which directional and environment emitters bake in
+at load time, is pinned by a `BOUND_KEY` helper shape, and the environment's
+`scale` is folded into its bitmap (`scale` stays 1).
 """
 from __future__ import annotations
 
@@ -13,8 +20,11 @@ from msps_render.render.materials import to_mitsuba
 from msps_render.scene.envmap import envmap_pixels
 from msps_render.scene.shapes import build_mesh, face_parts
 from msps_render.scene.spec import SceneSpec
+from msps_render.timing import StageTimer, stage
 
 ENV_KEY = "environment"
+BOUND_KEY = "bound"
+SCENE_BOUND = 1.5  # half-size of the fixed scene bounding box; objects fit in radius 1
 
 
 def light_key(k: int) -> str:
@@ -40,50 +50,97 @@ def _sensor(mi, spec: SceneSpec) -> dict:
             "near_clip": 0.01, "far_clip": 2 * c.distance + 10, "film": film, "sampler": sampler}
 
 
-def _shapes(mi, spec: SceneSpec) -> dict:
+def _bsdf(mi, spec: SceneSpec, p: int, timer: StageTimer | None):
+    """Part p's loaded BSDF (measured tables are read or baked on first use: timed as 'materials')."""
+    with stage(timer, "materials"):
+        return mi.load_dict(to_mitsuba(spec.materials[p]))
+
+
+def _shapes(mi, spec: SceneSpec, timer: StageTimer | None = None) -> dict:
     """Mitsuba shapes (one per material part), built from memory."""
     import drjit as dr
 
     if spec.shape.kind == "sphere":
-        return {"part0": {"type": "sphere", "radius": spec.shape.radius, "bsdf": to_mitsuba(spec.materials[0])}}
-    mesh = build_mesh(spec.shape)
-    parts = face_parts(mesh, spec.split)
-    out = {}
-    for p in range(int(parts.max()) + 1):
-        faces = mesh.faces[parts == p]
-        if len(faces) == 0:
-            continue
-        used = np.unique(faces)
-        remap = np.zeros(len(mesh.vertices), dtype=np.uint32)
-        remap[used] = np.arange(len(used), dtype=np.uint32)
-        props = mi.Properties()
-        props["bsdf"] = mi.load_dict(to_mitsuba(spec.materials[p]))
-        m = mi.Mesh(f"part{p}", len(used), len(faces), props=props, has_vertex_normals=True)
-        params = mi.traverse(m)
-        params["vertex_positions"] = dr.ravel(mi.TensorXf(mesh.vertices[used]))
-        params["faces"] = dr.ravel(mi.TensorXu(remap[faces]))
-        params["vertex_normals"] = dr.ravel(mi.TensorXf(mesh.normals[used]))
-        params.update()
-        out[f"part{p}"] = m
-    return out
+        return {"part0": {"type": "sphere", "radius": spec.shape.radius, "bsdf": _bsdf(mi, spec, 0, timer)}}
+    with stage(timer, "mesh"):  # the BSDFs inside are timed apart (nested stage)
+        mesh = build_mesh(spec.shape)
+        parts = face_parts(mesh, spec.split)
+        used_parts = [p for p in range(int(parts.max()) + 1) if (parts == p).any()]
+        # BSDFs are created in the order of their kind, not of their part: drjit numbers
+        # instances in creation order and the kernel depends on that order, so [merl, diffuse]
+        # and [diffuse, merl] would compile two kernels; sorted, they share one.
+        bsdfs = {p: _bsdf(mi, spec, p, timer)
+                 for p in sorted(used_parts, key=lambda p: (spec.materials[p].kind, p))}
+        out = {}
+        for p in used_parts:
+            faces = mesh.faces[parts == p]
+            used = np.unique(faces)
+            remap = np.zeros(len(mesh.vertices), dtype=np.uint32)
+            remap[used] = np.arange(len(used), dtype=np.uint32)
+            props = mi.Properties()
+            props["bsdf"] = bsdfs[p]
+            m = mi.Mesh(f"part{p}", len(used), len(faces), props=props, has_vertex_normals=True)
+            params = mi.traverse(m)
+            params["vertex_positions"] = dr.ravel(mi.TensorXf(mesh.vertices[used]))
+            params["faces"] = dr.ravel(mi.TensorXu(remap[faces]))
+            params["vertex_normals"] = dr.ravel(mi.TensorXf(mesh.normals[used]))
+            params.update()
+            out[f"part{p}"] = m
+        return out
 
 
-def _envmap(mi, spec: SceneSpec) -> dict:
+def _envmap(mi, spec: SceneSpec, factor: float = 1.0) -> dict:
+    """The environment emitter with `scale * factor` folded into the bitmap (its `scale` literal stays 1)."""
     e = spec.environment
-    img = envmap_pixels(e.source, e.seed)
-    return {"type": "envmap", "bitmap": mi.Bitmap(np.array(img, dtype=np.float32, order="C", copy=True)),  # writeable copy: Bitmap refuses read-only arrays
-            "scale": float(e.scale), "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], e.rotation_deg)}
+    img = np.array(envmap_pixels(e.source, e.seed), dtype=np.float32, order="C", copy=True)  # writeable: Bitmap refuses read-only arrays
+    img *= np.float32(float(e.scale) * factor)
+    return {"type": "envmap", "bitmap": mi.Bitmap(img), "scale": 1.0,
+            "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], e.rotation_deg)}
 
 
-def build_scene_dict(spec: SceneSpec, mi) -> dict:
-    """The `mi.load_dict` description of a SceneSpec (needs the variant set)."""
+def _bound(mi) -> "mi.Mesh":
+    """An invisible mesh whose bounding box is [-SCENE_BOUND, SCENE_BOUND]^3.
+
+    Why: directional and environment emitters store the scene's bounding sphere
+    when the scene is loaded and drjit bakes it into the kernels as literals, so
+    objects with different bounding boxes compiled their own kernels.  With this
+    shape every scene whose object lies inside the box has the same bounding
+    sphere.  Its two faces are points (all three corners on one vertex, at two
+    opposite corners of the box): zero area, never hit by a ray, no BSDF needed.
+    Shadow rays of directional lights only get longer (they start outside the
+    larger sphere), so images are unchanged.
+    """
+    import drjit as dr
+
+    b = SCENE_BOUND
+    m = mi.Mesh(BOUND_KEY, 2, 2, has_vertex_normals=False)
+    params = mi.traverse(m)
+    params["vertex_positions"] = dr.ravel(mi.TensorXf(np.array([[-b, -b, -b], [b, b, b]], np.float32)))
+    params["faces"] = dr.ravel(mi.TensorXu(np.array([[0, 0, 0], [1, 1, 1]], np.uint32)))
+    params.update()
+    return m
+
+
+def build_scene_dict(spec: SceneSpec, mi, timer: StageTimer | None = None, env_factor: float = 1.0) -> dict:
+    """The `mi.load_dict` description of a SceneSpec (needs the variant set).
+
+    `env_factor` multiplies the environment's radiance (spectral mode's RGB->spectrum
+    correction); `timer` times mesh building and material loading apart from the rest
+    ('scene dict').
+    """
+    with stage(timer, "scene dict"):
+        return _scene_dict(spec, mi, timer, env_factor)
+
+
+def _scene_dict(spec: SceneSpec, mi, timer: StageTimer | None, env_factor: float) -> dict:
     integ = spec.integrator
     if integ.kind == "path":
         integrator = {"type": "path", "max_depth": integ.max_depth, "hide_emitters": True}
     else:
         integrator = {"type": "direct", "hide_emitters": True}
     d = {"type": "scene", "integrator": integrator, "sensor": _sensor(mi, spec)}
-    d.update(_shapes(mi, spec))
+    d.update(_shapes(mi, spec, timer))
+    d[BOUND_KEY] = _bound(mi)
     for k, l in enumerate(spec.lights):
         if l.kind == "directional":
             d[light_key(k)] = {"type": "directional", "direction": [-c for c in l.direction],
@@ -92,5 +149,5 @@ def build_scene_dict(spec: SceneSpec, mi) -> dict:
             d[light_key(k)] = {"type": "point", "position": [c * l.distance for c in l.direction],
                                 "intensity": _rgb(mi, l.rgb)}
     if spec.environment is not None:
-        d[ENV_KEY] = _envmap(mi, spec)
+        d[ENV_KEY] = _envmap(mi, spec, env_factor)
     return d

@@ -15,9 +15,9 @@ Reuses the RGB scene description and edits it:
   only (see `_render_light_in_film`): identical expectation, ~10-30x less colour
   noise for narrow LEDs;
 * RGB materials (and the MERL plugin) are upsampled to spectra by Mitsuba;
-* the environment's `scale` is corrected so its camera response summed over
-  channels equals its RGB-mode channel sum (see `env_spectral_factor`), so
-  `EnvSpec.ratio` means the same in both modes.
+* the environment's radiance is corrected (`build_scene_dict(env_factor=...)`)
+  so its camera response summed over channels equals its RGB-mode channel sum
+  (see `env_spectral_factor`), so `EnvSpec.ratio` means the same in both modes.
 
 The effective crosstalk (columns: share of each light's signal per channel) is
 computed from the spectra and stored in `frame.spec.crosstalk` and `frame.meta`.
@@ -29,7 +29,7 @@ import numpy as np
 from msps_render.frame import Frame
 from msps_render.render.emitters import render_emitters_separately
 from msps_render.render.ground_truth import ground_truth
-from msps_render.render.scene_dict import ENV_KEY, build_scene_dict, light_key
+from msps_render.render.scene_dict import build_scene_dict, light_key
 from msps_render.scene.envmap import envmap_pixels, irradiance_on_axis
 from msps_render.scene.spec import SceneSpec
 from msps_render.spectral.spectra import GRID, WL_STEP, camera_sensitivities, light_spectrum
@@ -154,9 +154,8 @@ def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = F
             gt = gt or ground_truth(mi, scene, spec)
             images.append(img)
         if spec.environment is not None:
-            d = build_scene_dict(spec.model_copy(update={"lights": ()}), mi)
+            d = build_scene_dict(spec.model_copy(update={"lights": ()}), mi, env_factor=env_factor)
             d["sensor"]["film"] = specfilm(spec, S)
-            d[ENV_KEY]["scale"] = float(spec.environment.scale) * env_factor
             scene = mi.load_dict(d)
             gt = gt or ground_truth(mi, scene, spec)
             images.append(_render(mi, scene, spec))
@@ -166,12 +165,10 @@ def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = F
         zero = np.zeros(gt[0].shape, np.float32)
         images = [zero if im is None else im for im in images]
     else:
-        d = build_scene_dict(spec, mi)
+        d = build_scene_dict(spec, mi, env_factor=env_factor or 1.0)
         d["sensor"]["film"] = specfilm(spec, S)
         for k, (l, E) in enumerate(zip(spec.lights, spectra)):
             d[light_key(k)]["irradiance" if l.kind == "directional" else "intensity"] = _irregular(E)
-        if spec.environment is not None:
-            d[ENV_KEY]["scale"] = float(spec.environment.scale) * env_factor
         scene = mi.load_dict(d)
         gt = ground_truth(mi, scene, spec)
         images = render_emitters_separately(mi, scene, spec)

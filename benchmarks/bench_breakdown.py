@@ -1,0 +1,131 @@
+"""Where a frame's time goes, and how many drjit kernels each frame compiles (issue 12).
+
+Usage:
+  MSPS_THREADS=1 .venv/bin/python benchmarks/bench_breakdown.py [--preset paper-train] [--frames 32]
+      [--threads 1] [--warmup 8] [--fresh-disk-cache]
+
+Renders the first ceil(frames / frames_per_shard) shards of the preset in THIS
+process through the pipeline's own `render_shard` (one worker, the variant
+resolved as `msps render` resolves it), with a `StageTimer` passed in, and
+prints per stage the median and mean seconds per frame and the share of the
+total.  Stages: sample (SceneSpec from config + rng), mesh (mesh generation and
+Mitsuba mesh buffers), materials (BSDF construction; MERL tables read or baked
+on first use), scene dict (the rest of the scene description), scene load
+(`mi.load_dict`), kernel compile (codegen + LLVM time of kernels not found in
+drjit's in-memory cache, moved out of whichever stage launched them), ground
+truth, render, sensor, patchify, release memory, frame record, write (HDF5,
+shared evenly over a shard's frames).
+
+Kernel counts come from drjit's kernel history (`msps_render.render.kernels`):
+launches, compiled by LLVM, loaded from the on-disk cache (~/.drjit), and new
+kernel hashes, per 100 frames over all frames and after `--warmup` frames.
+`--fresh-disk-cache` points drjit's disk cache at an empty temporary HOME (this
+script re-executes itself), so every kernel not in memory is really compiled.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+STAGES = ("sample", "mesh", "materials", "scene dict", "scene load", "kernel compile", "ground truth", "render",
+          "sensor", "patchify", "release memory", "frame record", "write")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--preset", default="paper-train")
+    ap.add_argument("--frames", type=int, default=32)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--warmup", type=int, default=8, help="frames excluded from the 'after warm-up' counts")
+    ap.add_argument("--fresh-disk-cache", action="store_true")
+    ap.add_argument("--set", action="append", default=[], help="config override key=value (repeatable)")
+    a = ap.parse_args()
+    if a.fresh_disk_cache and not os.environ.get("MSPS_BENCH_FRESH_HOME"):
+        home = tempfile.mkdtemp(prefix="msps-bench-home-")
+        # keep baked MERL/NBRDF tables where they were (they live under ~/.cache unless set)
+        cache = os.environ.get("MSPS_CACHE_DIR") or os.path.join(
+            os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "msps")
+        env = {**os.environ, "HOME": home, "MSPS_BENCH_FRESH_HOME": home, "MSPS_CACHE_DIR": cache}
+        os.execve(sys.executable, [sys.executable, *sys.argv], env)
+
+    from msps_render.pipeline.config import load_config
+    from msps_render.pipeline.execute import WorkerSettings, render_shard
+    from msps_render.pipeline.plan import plan
+    from msps_render.render.kernels import COMPILE_STAGE, KernelLog
+    from msps_render.render.variant import activate, resolve_variant
+    from msps_render.timing import StageTimer
+
+    assert COMPILE_STAGE in STAGES
+    probe_cfg = load_config(a.preset, a.set)
+    fps = probe_cfg.dataset.frames_per_shard
+    n_shards = math.ceil(a.frames / fps)
+    cfg = load_config(a.preset, [*a.set, f"dataset.n_shards={n_shards}"])
+    variant = resolve_variant("spectral" if cfg.scene.mode == "spectral" else "rgb")
+    activate(variant, a.threads)
+    log = KernelLog()
+    timer = StageTimer(probe=log.probe, frame_counts=log.frame_counts)
+    walls = []
+    with tempfile.TemporaryDirectory(prefix="msps-breakdown-") as out:
+        (Path(out) / "shards").mkdir()
+        ws = WorkerSettings(out_dir=out, variant=variant, threads=a.threads)
+        t_all = time.perf_counter()
+        for task in plan(cfg):
+            info = render_shard(task, ws, timer=timer)
+            walls.append(info["wall_seconds"])
+        t_all = time.perf_counter() - t_all
+    log.close()
+    frames = timer.frames
+    n = len(frames)
+    print(f"preset {a.preset}, {n} frames ({n_shards} shards), variant {variant}, threads {a.threads}, "
+          f"disk cache {'fresh' if os.environ.get('MSPS_BENCH_FRESH_HOME') else '~/.drjit'}, "
+          f"load average {os.getloadavg()[0]:.1f}")
+    names = [s for s in STAGES if any(s in f for f in frames)] + sorted(
+        {k for f in frames for k in f} - set(STAGES))
+    per = {s: [f.get(s, 0.0) for f in frames] for s in names}
+    total = sum(sum(v) for v in per.values())
+    print()
+    print("| stage | median s/frame | mean s/frame | share of total |")
+    print("|---|---|---|---|")
+    for s in names:
+        print(f"| {s} | {statistics.median(per[s]):.4f} | {statistics.mean(per[s]):.4f} | "
+              f"{100 * sum(per[s]) / total:.1f}% |")
+    frame_totals = [sum(f.values()) for f in frames]
+    print(f"| **total** | {statistics.median(frame_totals):.4f} | {total / n:.4f} | 100% |")
+    setup = [f.get("mesh", 0) + f.get("materials", 0) + f.get("scene dict", 0) + f.get("scene load", 0)
+             + f.get(COMPILE_STAGE, 0) for f in frames]
+    setup_nc = [f.get("mesh", 0) + f.get("materials", 0) + f.get("scene dict", 0) + f.get("scene load", 0)
+                for f in frames]
+    print()
+    print(f"wall {t_all:.1f} s for {n} frames ({t_all / n:.3f} s/frame); shards' own wall sum {sum(walls):.1f} s, "
+          f"stages account for {total:.1f} s")
+    print(f"scene set-up per frame (mesh + materials + scene dict + scene load + kernel compile): median "
+          f"{statistics.median(setup):.4f} s, mean {statistics.mean(setup):.4f} s; without compile: median "
+          f"{statistics.median(setup_nc):.4f} s")
+    w = min(a.warmup, n - 1)
+    print()
+    print("| kernels | launches | not in memory | compiled (LLVM) | loaded from disk cache | new hashes | "
+          "compile s |")
+    print("|---|---|---|---|---|---|---|")
+    for label, rows in ((f"all {n} frames", timer.counts), (f"after {w} warm-up frames", timer.counts[w:])):
+        m = len(rows)
+        tot = {k: sum(r.get(k, 0) for r in rows) for k in ("launches", "compiled", "disk_loads", "new_hashes",
+                                                           "compile_seconds")}
+        k100 = 100.0 / max(m, 1)
+        print(f"| {label}, per 100 frames | {tot['launches'] * k100:.0f} | "
+              f"{(tot['compiled'] + tot['disk_loads']) * k100:.0f} | {tot['compiled'] * k100:.0f} | "
+              f"{tot['disk_loads'] * k100:.0f} | {tot['new_hashes'] * k100:.0f} | "
+              f"{tot['compile_seconds'] * k100:.1f} |")
+    print()
+    print("per frame (compiled / disk / new hashes / launches):",
+          " ".join(f"{int(c['compiled'])}/{int(c['disk_loads'])}/{int(c['new_hashes'])}/{int(c['launches'])}"
+                   for c in timer.counts))
+
+
+if __name__ == "__main__":
+    main()
