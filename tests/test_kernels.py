@@ -142,3 +142,15 @@ def test_directional_shadow_is_exact_with_the_fixed_bound(rgb_variant, tmp_path)
     expected = rho / np.pi * E * l[2]
     rel = np.abs(f.image[lit][:, 0] - expected) / expected
     assert rel.max() < 1e-3, rel.max()
+
+
+def test_smooth_plastic_ior_takes_few_values():
+    """Mitsuba's `plastic` bakes int_ior into the kernel: the family draws it on a 0.1 grid, so a
+    long run compiles at most 4 plastic variants per material mix instead of one per scene."""
+    import numpy as np
+
+    from msps_render.brdf.families import FAMILIES
+
+    rng = np.random.default_rng(0)
+    iors = {FAMILIES["plastic"].sample(rng)["int_ior"] for _ in range(400)}
+    assert iors == {1.4, 1.5, 1.6, 1.7}

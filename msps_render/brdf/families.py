@@ -28,7 +28,10 @@ def _diffuse(rng):
 
 
 def _plastic(rng):
-    return {"diffuse_reflectance": _albedo(rng, 0.1, 0.8), "int_ior": float(rng.uniform(1.4, 1.7))}
+    # Mitsuba's smooth `plastic` bakes int_ior into the kernel as a literal, so every distinct value
+    # compiles a new kernel (~84 % of the compiles left after warm-up, docs/benchmarks.md).  Rounded
+    # to 0.1 (1.4/1.5/1.6/1.7; the same single draw, so no other draw moves) they cost 4 kernels.
+    return {"diffuse_reflectance": _albedo(rng, 0.1, 0.8), "int_ior": round(float(rng.uniform(1.4, 1.7)), 1)}
 
 
 def _roughplastic(rng):
