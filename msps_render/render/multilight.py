@@ -54,11 +54,13 @@ def integrator_dict(kind: str, max_depth: int, emitter_ids: Sequence[str], hide_
 
 
 def band_table(grid: np.ndarray, bands: np.ndarray) -> dict[str, np.ndarray]:
-    """Sampling table of the wavelength density ∝ Σ_i band_i (piecewise constant per grid bin).
+    """Sampling table of the wavelength density ∝ Σ_i band_i (piecewise linear, like the bands).
 
-    Returns float32 arrays: knots `grid` (N,), per-bin inclusive/exclusive CDF `cdf_hi`, `cdf_lo`
-    (N-1,), and per-bin `a`, `b` (N-1, 3) = band_i at the bin's left/right knot divided by the
-    bin's pdf, so band_i(λ)/pdf(λ) = lerp(a, b, t) exactly for the piecewise-linear bands.
+    Returns float32 arrays: knots `grid` (N,), per-bin inclusive/exclusive CDF `cdf_hi`,
+    `cdf_lo` (N-1,), the band sum at each bin's left/right knot `s` (N-1, 2), and per bin the
+    bands at its left/right knot times the normalisation, `c0`, `c1` (N-1, 3), so that
+    band_i(λ)/pdf(λ) = lerp(c0, c1, t)_i / lerp(s0, s1, t) exactly.  (A piecewise-constant pdf
+    would let band/pdf vary inside each 1 nm bin: 4x the colour noise on a 20 nm LED's flanks.)
     """
     grid = np.asarray(grid, np.float64)
     bands = np.asarray(bands, np.float64)
@@ -66,19 +68,18 @@ def band_table(grid: np.ndarray, bands: np.ndarray) -> dict[str, np.ndarray]:
         raise ValueError(f"bands must be (N, 3) on an increasing grid of N >= 2 wavelengths, got {bands.shape}")
     if np.any(~np.isfinite(bands)) or np.any(bands < 0):
         raise ValueError("bands must be finite and >= 0")
-    width = np.diff(grid)
-    mass = 0.5 * (bands[:-1].sum(1) + bands[1:].sum(1)) * width
+    ssum = bands.sum(1)
+    mass = 0.5 * (ssum[:-1] + ssum[1:]) * np.diff(grid)
     total = mass.sum()
     if total <= 0:
         raise ValueError("bands are zero everywhere: nothing to sample")
-    pdf = mass / total / width
     cdf_hi = np.cumsum(mass) / total
     cdf_hi[-1] = 1.0
     cdf_lo = np.concatenate([[0.0], cdf_hi[:-1]])
-    inv = np.where(pdf > 0, 1.0 / np.where(pdf > 0, pdf, 1.0), 0.0)[:, None]
     f32 = functools.partial(np.ascontiguousarray, dtype=np.float32)
     return {"grid": f32(grid), "cdf_lo": f32(cdf_lo), "cdf_hi": f32(cdf_hi),
-            "a": f32(bands[:-1] * inv), "b": f32(bands[1:] * inv)}
+            "s": f32(np.stack([ssum[:-1], ssum[1:]], 1)), "c0": f32(bands[:-1] * total),
+            "c1": f32(bands[1:] * total)}
 
 
 def _mis_weight(pdf_a, pdf_b):
@@ -91,8 +92,9 @@ def _mis_weight(pdf_a, pdf_b):
 
 
 def _sample_wavelengths(mi, table: dict, u):
-    """Four stratified wavelengths from `table` and, per camera channel, the lane weights
-    band_i(λ_j)/pdf(λ_j)/4 (so the channel estimate is Σ_j L(λ_j)·weight_ij)."""
+    """Four stratified wavelengths from `table` (exact inversion of the piecewise-linear density)
+    and, per camera channel, the lane weights band_i(λ_j)/pdf(λ_j)/4 (the channel estimate is
+    Σ_j L(λ_j)·weight_ij)."""
     import drjit as dr
 
     n_lanes = dr.size_v(mi.UnpolarizedSpectrum)
@@ -104,13 +106,18 @@ def _sample_wavelengths(mi, table: dict, u):
         idx = dr.binary_search(0, n_bins - 1, lambda i: dr.gather(mi.Float, table["cdf_hi"], i) <= uj)
         lo = dr.gather(mi.Float, table["cdf_lo"], idx)
         hi = dr.gather(mi.Float, table["cdf_hi"], idx)
-        t = dr.clip((uj - lo) / dr.maximum(hi - lo, 1e-30), 0.0, 1.0)
+        v = dr.clip((uj - lo) / dr.maximum(hi - lo, 1e-30), 0.0, 1.0)
+        s = dr.gather(mi.Vector2f, table["s"], idx)
+        # inverse of the linear density s0 + (s1 - s0) t on the bin: s0 t + (s1 - s0) t^2 / 2 = v (s0 + s1) / 2
+        num = v * (s.x + s.y)
+        t = dr.clip(num / dr.maximum(s.x + dr.sqrt(dr.maximum(s.x * s.x + (s.y - s.x) * num, 0.0)), 1e-30),
+                    0.0, 1.0)
         g0 = dr.gather(mi.Float, table["grid"], idx)
         g1 = dr.gather(mi.Float, table["grid"], idx + 1)
         lam.append(dr.lerp(g0, g1, t))
-        a = dr.gather(mi.Vector3f, table["a"], idx)
-        b = dr.gather(mi.Vector3f, table["b"], idx)
-        w = dr.lerp(a, b, t) * (1.0 / n_lanes)
+        c = dr.lerp(dr.gather(mi.Vector3f, table["c0"], idx), dr.gather(mi.Vector3f, table["c1"], idx), t)
+        ssum = dr.lerp(s.x, s.y, t)
+        w = c * dr.select(ssum > 0, 1.0 / (n_lanes * ssum), 0.0)
         for i in range(3):
             weights[i].append(w[i])
     wavelengths = mi.UnpolarizedSpectrum(*lam)
