@@ -232,7 +232,9 @@ def _plugin_class(variant: str):
 
                 active_next = active & (depth + 1 < self.max_depth) & si.is_valid()
                 bsdf = si.bsdf(ray)
-                active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+                flags = bsdf.flags()
+                active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth)
+                transmits = mi.has_flag(flags, mi.BSDFFlags.Transmission)
                 # ---- next-event estimation: every emitter, one shadow ray each
                 # One 2D sample per vertex, as Mitsuba's `path` draws for its emitter sample (used by the
                 # environment; delta lights ignore it): with the same seed, each light's image then uses
@@ -243,6 +245,8 @@ def _plugin_class(variant: str):
                     s = si_g[group_of[e]]
                     ds, em_w = ems[e].sample_direction(s, mi.Point2f(0.5, 0.5) if delta[e] else u_em, active_em)
                     ok = active_em & (ds.pdf != 0.0)
+                    # A reflecting BSDF is 0 for light below the shading horizon: skip the shadow ray.
+                    ok &= (mi.Frame3f.cos_theta(si.to_local(ds.d)) > 0) | transmits
                     # Directional and environment: a ray to infinity (their ds.p depends on the scene's
                     # bounding sphere, a per-scene literal that would recompile the kernel every scene).
                     shadow = si.spawn_ray(ds.d) if infinite[e] else si.spawn_ray_to(ds.p)
