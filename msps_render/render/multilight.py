@@ -290,7 +290,9 @@ def _plugin_class(variant: str):
                 active = active_next & (~rr_active | rr_continue) & (beta_max != 0.0)
                 return sampler, ray, depth, active, valid_ray, eta, prev_si, prev_pdf, prev_delta, beta, acc
 
-            state = (sampler, mi.Ray3f(ray), mi.UInt32(0), mi.Bool(active), mi.Bool(False), mi.Float(1.0),
+            # as Mitsuba's `path`: a camera ray that escapes counts only if the environment is visible
+            valid0 = mi.Bool(not self.hide_emitters and env is not None)
+            state = (sampler, mi.Ray3f(ray), mi.UInt32(0), mi.Bool(active), valid0, mi.Float(1.0),
                      dr.zeros(mi.Interaction3f), mi.Float(1.0), mi.Bool(True),
                      [mi.Spectrum(1.0) for _ in groups], [mi.Spectrum(0.0) for _ in range(n)])
             state = dr.while_loop(state=state, cond=lambda *s: s[3], body=body,

@@ -236,5 +236,6 @@ class SceneSpec(FrozenModel):
             L.append(f"environment: {e.source} scale={e.scale:g} rot={e.rotation_deg:.1f}deg")
         c = self.camera
         L.append(f"camera: {c.kind} {c.width}x{c.height}; integrator: {self.integrator.kind} "
-                 f"depth={self.integrator.max_depth} spp={self.integrator.spp}; mode: {self.mode}")
+                 f"depth={self.integrator.max_depth} spp={self.integrator.spp} lights={self.integrator.lights}; "
+                 f"mode: {self.mode}")
         return "\n".join(L)
