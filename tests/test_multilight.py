@@ -27,6 +27,8 @@ emitter e and colour c, over the object mask (N pixels):
 """
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from scipy.ndimage import binary_erosion
@@ -379,6 +381,4 @@ def test_lights_field_default_validation_and_old_specs():
     # a spec stored before the field existed loads, and re-renders as it was rendered: per light
     old = spec.model_dump(mode="json")
     del old["integrator"]["lights"]
-    import json
-
     assert SceneSpec.from_json(json.dumps(old)).integrator.lights == "per-light"
