@@ -27,8 +27,9 @@ def render_scene(scene: Path = typer.Argument(..., help="SceneSpec JSON (see `ms
     import time
 
     c, n = spec.camera, len(spec.lights) + (spec.environment is not None)
+    how = "in one pass" if spec.integrator.lights == "one-pass" else "one by one"
     typer.echo(f"rendering {scene}: {c.width}x{c.height}, {spec.integrator.spp} spp, {n} emitter(s) rendered "
-               "one by one ...")  # stdout: stderr is kept for the one error line
+               f"{how} ...")  # stdout: stderr is kept for the one error line
     t0 = time.perf_counter()
     frame = render_frame(spec, variant=variant, threads=threads, per_light=per_light)
     files = frame.save(out)

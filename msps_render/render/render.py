@@ -3,9 +3,12 @@
 The image is `mi.render` with a box pixel filter (a pixel is the mean radiance
 over its footprint).  Ground truth (normal, depth, mask, part) comes from one
 ray through each pixel centre with `scene.ray_intersect`, so it is exact and
-never blended with the background.  Per-light images are rendered from the
-same compiled scene by switching the other emitters off with `mi.traverse`,
-and then the full image is their sum: linearity makes that exact, and it keeps
+never blended with the background.  Per-emitter images come from one render
+with the `msps_multilight` integrator (`spec.integrator.lights = "one-pass"`:
+every light sampled at every vertex, each in its own film channels) or, as the
+reference, one Mitsuba render per emitter from the same compiled scene with the
+others switched off through `mi.traverse` ("per-light"; scalar variants always).
+The full image is their sum: linearity makes that exact, and it keeps
 `image == Σ per_light + env` bit-for-bit consistent.
 """
 from __future__ import annotations
@@ -13,9 +16,9 @@ from __future__ import annotations
 import numpy as np
 
 from msps_render.frame import Frame
-from msps_render.render.emitters import render_emitters_separately
+from msps_render.render.emitters import render_emitters_one_pass, render_emitters_separately
 from msps_render.render.ground_truth import ground_truth
-from msps_render.render.scene_dict import build_scene_dict
+from msps_render.render.scene_dict import build_scene_dict, emitter_ids, one_pass
 from msps_render.render.spectral import render_spectral_frame
 from msps_render.render.variant import activate, resolve_variant
 from msps_render.scene.spec import SceneSpec
@@ -37,7 +40,11 @@ def render_frame(spec: SceneSpec, variant: str | None = None, threads: int | Non
     with stage(timer, "ground truth"):
         normal, mask, depth, part = ground_truth(mi, scene, spec)
     with stage(timer, "render"):
-        images = render_emitters_separately(mi, scene, spec)
+        if one_pass(spec, mi):
+            images = render_emitters_one_pass(mi, scene, emitter_ids(spec), spec.integrator.spp,
+                                              spec.integrator.seed)
+        else:
+            images = render_emitters_separately(mi, scene, spec)
     env_img = images.pop() if spec.environment is not None else None
     per = np.stack(images) if images else np.zeros((0,) + normal.shape, np.float32)
     image = per.sum(axis=0) + (env_img if env_img is not None else 0.0)
@@ -45,4 +52,4 @@ def render_frame(spec: SceneSpec, variant: str | None = None, threads: int | Non
         per = None
     return Frame(image=np.ascontiguousarray(image[..., :3], dtype=np.float32), normal=normal, mask=mask,
                  depth=depth, part=part, spec=spec, variant=variant, per_light=per, env_image=env_img,
-                 meta={"mitsuba_version": mi.__version__})
+                 meta={"mitsuba_version": mi.__version__, "lights": "one-pass" if one_pass(spec, mi) else "per-light"})

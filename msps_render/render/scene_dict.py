@@ -3,7 +3,8 @@
 Shapes are built from memory (`mi.Mesh` + `mi.traverse` buffers, one Mitsuba
 shape per material part), materials go through `render.materials.to_mitsuba`,
 the environment becomes an `envmap` emitter over the map's pixels.  Emitters
-have fixed ids (`light_key(k)`, `ENV_KEY`) so renderers can switch them.
+have fixed ids (`light_key(k)`, `ENV_KEY`) so renderers can switch them and
+the one-pass integrator (`render.multilight`) names its channels after them.
 
 Kernel reuse (docs/architecture.md "Kernels reused across scenes"): per-scene
 numbers must reach drjit as data, not as literals baked into the kernels, or
@@ -17,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from msps_render.render.materials import to_mitsuba
+from msps_render.render.multilight import integrator_dict
 from msps_render.scene.envmap import envmap_pixels
 from msps_render.scene.shapes import build_mesh, face_parts
 from msps_render.scene.spec import SceneSpec
@@ -98,6 +100,24 @@ def _envmap(mi, spec: SceneSpec, factor: float = 1.0) -> dict:
             "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], e.rotation_deg)}
 
 
+def emitter_ids(spec: SceneSpec) -> list[str]:
+    """Emitter ids in render order: the lights, then the environment."""
+    return [light_key(k) for k in range(len(spec.lights))] + ([ENV_KEY] if spec.environment is not None else [])
+
+
+def one_pass(spec: SceneSpec, mi) -> bool:
+    """Render with the one-pass integrator?  Asked for, and a JIT variant: in scalar variants a
+    Python integrator is called per sample (~50-450x slower), so they keep per-light renders."""
+    import drjit as dr
+
+    return spec.integrator.lights == "one-pass" and dr.is_jit_v(mi.Float)
+
+
+def with_lights(spec: SceneSpec, mode: str) -> SceneSpec:
+    """`spec` rendered with `integrator.lights = mode` ("one-pass" or "per-light")."""
+    return spec.model_copy(update={"integrator": spec.integrator.model_copy(update={"lights": mode})})
+
+
 def _bound(mi) -> "mi.Mesh":
     """An invisible mesh whose bounding box is [-SCENE_BOUND, SCENE_BOUND]^3.
 
@@ -134,7 +154,9 @@ def build_scene_dict(spec: SceneSpec, mi, timer: StageTimer | None = None, env_f
 
 def _scene_dict(spec: SceneSpec, mi, timer: StageTimer | None, env_factor: float) -> dict:
     integ = spec.integrator
-    if integ.kind == "path":
+    if one_pass(spec, mi):
+        integrator = integrator_dict(integ.kind, integ.max_depth, emitter_ids(spec), hide_emitters=True)
+    elif integ.kind == "path":
         integrator = {"type": "path", "max_depth": integ.max_depth, "hide_emitters": True}
     else:
         integrator = {"type": "direct", "hide_emitters": True}

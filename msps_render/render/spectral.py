@@ -27,9 +27,10 @@ from __future__ import annotations
 import numpy as np
 
 from msps_render.frame import Frame
-from msps_render.render.emitters import render_emitters_separately
+from msps_render.render.emitters import render_emitters_one_pass, render_emitters_separately
 from msps_render.render.ground_truth import ground_truth
-from msps_render.render.scene_dict import build_scene_dict, light_key
+from msps_render.render.multilight import integrator_dict
+from msps_render.render.scene_dict import ENV_KEY, build_scene_dict, light_key, one_pass, with_lights
 from msps_render.scene.envmap import envmap_pixels, irradiance_on_axis
 from msps_render.scene.spec import SceneSpec
 from msps_render.spectral.spectra import GRID, WL_STEP, camera_sensitivities, light_spectrum
@@ -134,44 +135,78 @@ def _render_light_in_film(mi, spec: SceneSpec, k: int, E: np.ndarray, S: np.ndar
     return scene, _render(mi, scene, spec)
 
 
+def _render_one_pass(mi, spec: SceneSpec, S: np.ndarray, spectra: list[np.ndarray], R: np.ndarray,
+                     env_factor: float | None):
+    """Every emitter from ONE render (`msps_multilight`), with the emission folded into each
+    emitter's own bands as `_render_light_in_film` does: light k emits a flat unit spectrum and its
+    four wavelengths per path are drawn from its bands E_k·S_i, the environment's from S_i.
+    Returns (ground truth, images: lights in order, then the environment)."""
+    visible = [k for k in range(len(spec.lights)) if R[:, k].sum() > 0]  # the camera sees light k
+    ids = [light_key(k) for k in visible] + ([ENV_KEY] if spec.environment is not None else [])
+    integ = spec.integrator
+    d = build_scene_dict(spec, mi, env_factor=env_factor or 1.0)  # env scale x factor folded into its bitmap
+    d["integrator"] = integrator_dict(integ.kind, integ.max_depth, ids, hide_emitters=True)
+    for k, l in enumerate(spec.lights):
+        d[light_key(k)]["irradiance" if l.kind == "directional" else "intensity"] = {"type": "uniform", "value": 1.0}
+    bands = {light_key(k): S * spectra[k][:, None] for k in visible}
+    if spec.environment is not None:
+        bands[ENV_KEY] = S
+    scene = mi.load_dict(d)
+    gt = ground_truth(mi, scene, spec)
+    if not ids:  # no visible light and no environment: geometry only
+        return gt, [np.zeros(gt[0].shape, np.float32) for _ in spec.lights]
+    scene.integrator().set_bands(GRID, bands)
+    got = dict(zip(ids, render_emitters_one_pass(mi, scene, ids, integ.spp, integ.seed)))
+    zero = np.zeros(gt[0].shape, np.float32)
+    images = [got.get(light_key(k), zero) for k in range(len(spec.lights))]
+    if spec.environment is not None:
+        images.append(got[ENV_KEY])
+    return gt, images
+
+
 def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = False,
                           emission_in_film: bool = True) -> Frame:
     """Render a spectral SceneSpec. `emission_in_film=False` renders the literal set-up (lights
-    emit their spectra, film bands = camera sensitivities): same expectation, much noisier for
-    narrow LEDs; kept for validation (tests compare both)."""
+    emit their spectra, film bands = camera sensitivities; always one render per emitter): same
+    expectation, much noisier for narrow LEDs; kept for validation (tests compare both)."""
     camera_id = spec.camera_response or DEFAULT_CAMERA
     S = camera_sensitivities(camera_id).values
     spectra, R = light_responses(mi, spec, camera_id)
     env_factor = env_spectral_factor(mi, spec, camera_id) if spec.environment is not None else None
     gt = None
-    if emission_in_film:
+    lights_mode = "one-pass" if emission_in_film and one_pass(spec, mi) else "per-light"
+    if lights_mode == "one-pass":
+        gt, images = _render_one_pass(mi, spec, S, spectra, R, env_factor)
+    elif emission_in_film:
+        ref = with_lights(spec, "per-light")  # the reference: one Mitsuba render per emitter
         images = []
         for k in range(len(spec.lights)):
             if R[:, k].sum() <= 0:  # the camera does not see this light at all
                 images.append(None)
                 continue
-            scene, img = _render_light_in_film(mi, spec, k, spectra[k], S)
+            scene, img = _render_light_in_film(mi, ref, k, spectra[k], S)
             gt = gt or ground_truth(mi, scene, spec)
             images.append(img)
         if spec.environment is not None:
-            d = build_scene_dict(spec.model_copy(update={"lights": ()}), mi, env_factor=env_factor)
+            d = build_scene_dict(ref.model_copy(update={"lights": ()}), mi, env_factor=env_factor)
             d["sensor"]["film"] = specfilm(spec, S)
             scene = mi.load_dict(d)
             gt = gt or ground_truth(mi, scene, spec)
             images.append(_render(mi, scene, spec))
         if gt is None:  # no visible light: geometry only
-            scene = mi.load_dict(build_scene_dict(spec, mi))
+            scene = mi.load_dict(build_scene_dict(ref, mi))
             gt = ground_truth(mi, scene, spec)
         zero = np.zeros(gt[0].shape, np.float32)
         images = [zero if im is None else im for im in images]
     else:
-        d = build_scene_dict(spec, mi, env_factor=env_factor or 1.0)
+        ref = with_lights(spec, "per-light")
+        d = build_scene_dict(ref, mi, env_factor=env_factor or 1.0)
         d["sensor"]["film"] = specfilm(spec, S)
         for k, (l, E) in enumerate(zip(spec.lights, spectra)):
             d[light_key(k)]["irradiance" if l.kind == "directional" else "intensity"] = _irregular(E)
         scene = mi.load_dict(d)
         gt = ground_truth(mi, scene, spec)
-        images = render_emitters_separately(mi, scene, spec)
+        images = render_emitters_separately(mi, scene, ref)
     normal, mask, depth, part = gt
 
     env_img = images.pop() if spec.environment is not None else None
@@ -187,7 +222,7 @@ def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = F
     meta = {"mitsuba_version": mi.__version__, "camera_response": camera_id,
             "crosstalk_effective": M.tolist(), "light_response": R.tolist(),
             "light_spectra": [l.spectrum for l in spec.lights], "env_spectral_factor": env_factor,
-            "wavelength_sampling": "emission x camera" if emission_in_film else "camera",
+            "wavelength_sampling": "emission x camera" if emission_in_film else "camera", "lights": lights_mode,
             "wavelength_range_nm": [float(GRID[0]), float(GRID[-1])]}
     return Frame(image=np.ascontiguousarray(image[..., :3], dtype=np.float32), normal=normal, mask=mask,
                  depth=depth, part=part, spec=out_spec, variant=variant,

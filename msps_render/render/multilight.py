@@ -1,0 +1,353 @@
+"""Mitsuba integrator `msps_multilight`: one camera path per sample, every light sampled at every vertex.
+
+Why: Mitsuba's `path` and `direct` pick ONE emitter at random per next-event
+sample, so K differently coloured lights in one render cost K-fold selection
+noise; the old remedy was one render per emitter (`emitters.render_emitters_separately`).
+This integrator traces each camera path once and, at every vertex, sends one
+shadow ray to EVERY delta light (directional, point: `sample_direction` is
+deterministic) and samples the environment by MIS (emitter sampling of the
+env + BSDF sampling that escapes to it, power heuristic).  Each emitter's
+radiance goes to its own AOV channels `<emitter id>.R/.G/.B`, so one render
+gives the K per-light images and the environment image.  Everything else is
+Mitsuba `path` (max_depth, Russian roulette from `rr_depth` on, hide_emitters;
+`direct` = max_depth 2), so every per-emitter image has the same expectation as
+rendering that emitter alone with Mitsuba's own integrator.
+
+Spectral variants: a light's spectrum is narrow, so each emitter gets its own
+four wavelengths, drawn from its own camera-channel bands (`set_bands`: light k:
+E_k(λ)·S_i(λ) with the light emitting a flat unit spectrum; environment: S_i(λ)),
+and its own throughput along the shared path; the AOVs are camera channels,
+Σ_λ L(λ)·band_i(λ)/pdf(λ) (see `render.spectral`).  All groups reuse the same
+random numbers for BSDF sampling, which gives the same direction for every
+BSDF kind we render (their lobe choice does not depend on wavelength; checked
+in tests/test_multilight.py).
+
+Registered per Mitsuba variant (`register`, idempotent).  Per-scene values
+(band tables) are device arrays, never Python scalars, so the kernel is reused
+across scenes of the same structure.  Mitsuba is imported lazily.
+"""
+from __future__ import annotations
+
+import functools
+from typing import Sequence
+
+import numpy as np
+
+PLUGIN_NAME = "msps_multilight"
+RR_DEPTH = 5  # Mitsuba's default for `path`
+_CHANNELS = ("R", "G", "B")
+
+
+def channel_names(emitter_id: str) -> list[str]:
+    """The AOV channel names of one emitter's image."""
+    return [f"{emitter_id}.{c}" for c in _CHANNELS]
+
+
+def integrator_dict(kind: str, max_depth: int, emitter_ids: Sequence[str], hide_emitters: bool = True) -> dict:
+    """`mi.load_dict` description of the one-pass integrator (registers it for the current variant).
+
+    `kind` "direct" is one bounce (Mitsuba `direct` with one emitter and one BSDF sample).
+    """
+    register()
+    return {"type": PLUGIN_NAME, "max_depth": 2 if kind == "direct" else int(max_depth),
+            "rr_depth": RR_DEPTH, "hide_emitters": bool(hide_emitters), "emitters": ",".join(emitter_ids)}
+
+
+def band_table(grid: np.ndarray, bands: np.ndarray) -> dict[str, np.ndarray]:
+    """Sampling table of the wavelength density ∝ Σ_i band_i (piecewise linear, like the bands).
+
+    Returns float32 arrays: knots `grid` (N,), per-bin inclusive/exclusive CDF `cdf_hi`,
+    `cdf_lo` (N-1,), the band sum at each bin's left/right knot `s` (N-1, 2), and per bin the
+    bands at its left/right knot times the normalisation, `c0`, `c1` (N-1, 3), so that
+    band_i(λ)/pdf(λ) = lerp(c0, c1, t)_i / lerp(s0, s1, t) exactly.  (A piecewise-constant pdf
+    would let band/pdf vary inside each 1 nm bin: 4x the colour noise on a 20 nm LED's flanks.)
+    """
+    grid = np.asarray(grid, np.float64)
+    bands = np.asarray(bands, np.float64)
+    if grid.ndim != 1 or bands.shape != (len(grid), 3) or len(grid) < 2 or np.any(np.diff(grid) <= 0):
+        raise ValueError(f"bands must be (N, 3) on an increasing grid of N >= 2 wavelengths, got {bands.shape}")
+    if np.any(~np.isfinite(bands)) or np.any(bands < 0):
+        raise ValueError("bands must be finite and >= 0")
+    ssum = bands.sum(1)
+    mass = 0.5 * (ssum[:-1] + ssum[1:]) * np.diff(grid)
+    total = mass.sum()
+    if total <= 0:
+        raise ValueError("bands are zero everywhere: nothing to sample")
+    cdf_hi = np.cumsum(mass) / total
+    cdf_hi[-1] = 1.0
+    cdf_lo = np.concatenate([[0.0], cdf_hi[:-1]])
+    f32 = functools.partial(np.ascontiguousarray, dtype=np.float32)
+    return {"grid": f32(grid), "cdf_lo": f32(cdf_lo), "cdf_hi": f32(cdf_hi),
+            "s": f32(np.stack([ssum[:-1], ssum[1:]], 1)), "c0": f32(bands[:-1] * total),
+            "c1": f32(bands[1:] * total)}
+
+
+def _mis_weight(pdf_a, pdf_b):
+    """Power heuristic, as Mitsuba's `path` (0 where undefined)."""
+    import drjit as dr
+
+    a2, b2 = pdf_a * pdf_a, pdf_b * pdf_b
+    w = a2 / (a2 + b2)
+    return dr.select(dr.isfinite(w), w, 0.0)
+
+
+def _sample_wavelengths(mi, table: dict, u):
+    """Four stratified wavelengths from `table` (exact inversion of the piecewise-linear density)
+    and, per camera channel, the lane weights band_i(λ_j)/pdf(λ_j)/4 (the channel estimate is
+    Σ_j L(λ_j)·weight_ij)."""
+    import drjit as dr
+
+    n_lanes = dr.size_v(mi.UnpolarizedSpectrum)
+    n_bins = dr.width(table["cdf_hi"])
+    lam, weights = [], [[], [], []]
+    for j in range(n_lanes):
+        uj = u + j / n_lanes
+        uj = dr.select(uj >= 1.0, uj - 1.0, uj)
+        idx = dr.binary_search(0, n_bins - 1, lambda i: dr.gather(mi.Float, table["cdf_hi"], i) <= uj)
+        lo = dr.gather(mi.Float, table["cdf_lo"], idx)
+        hi = dr.gather(mi.Float, table["cdf_hi"], idx)
+        v = dr.clip((uj - lo) / dr.maximum(hi - lo, 1e-30), 0.0, 1.0)
+        s = dr.gather(mi.Vector2f, table["s"], idx)
+        # inverse of the linear density s0 + (s1 - s0) t on the bin: s0 t + (s1 - s0) t^2 / 2 = v (s0 + s1) / 2
+        num = v * (s.x + s.y)
+        t = dr.clip(num / dr.maximum(s.x + dr.sqrt(dr.maximum(s.x * s.x + (s.y - s.x) * num, 0.0)), 1e-30),
+                    0.0, 1.0)
+        g0 = dr.gather(mi.Float, table["grid"], idx)
+        g1 = dr.gather(mi.Float, table["grid"], idx + 1)
+        lam.append(dr.lerp(g0, g1, t))
+        c = dr.lerp(dr.gather(mi.Vector3f, table["c0"], idx), dr.gather(mi.Vector3f, table["c1"], idx), t)
+        ssum = dr.lerp(s.x, s.y, t)
+        w = c * dr.select(ssum > 0, 1.0 / (n_lanes * ssum), 0.0)
+        for i in range(3):
+            weights[i].append(w[i])
+    wavelengths = mi.UnpolarizedSpectrum(*lam)
+    return wavelengths, [mi.UnpolarizedSpectrum(*w) for w in weights]
+
+
+def _with_wavelengths(mi, si, wavelengths):
+    """A copy of `si` carrying other wavelengths (spectral groups); `si` itself in RGB variants."""
+    if wavelengths is None:
+        return si
+    out = mi.SurfaceInteraction3f(si)
+    out.wavelengths = wavelengths
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def _plugin_class(variant: str):
+    """The `mi.SamplingIntegrator` subclass bound to `variant` (Python plugins are per-variant classes)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    class MultiLightIntegrator(mi.SamplingIntegrator):
+        """All emitters per vertex, one AOV triple per emitter (see the module docstring)."""
+
+        def __init__(self, props: "mi.Properties"):
+            mi.SamplingIntegrator.__init__(self, props)
+            self.max_depth = int(props.get("max_depth", -1))
+            self.rr_depth = int(props.get("rr_depth", RR_DEPTH))
+            self.hide_emitters = bool(props.get("hide_emitters", False))
+            self.emitter_ids = [s for s in str(props.get("emitters", "")).split(",") if s]
+            if not self.emitter_ids:
+                raise ValueError(f"{PLUGIN_NAME}: property 'emitters' (comma-separated emitter ids) is required")
+            if self.max_depth < 0:
+                self.max_depth = 2 ** 31 - 1
+            self.tables: dict[str, dict] = {}
+
+        # ---- configuration
+        def set_bands(self, grid: np.ndarray, bands: dict[str, np.ndarray]) -> None:
+            """Spectral variants: camera-channel bands (N, 3) on `grid` for every emitter id."""
+            missing = [e for e in self.emitter_ids if e not in bands]
+            if missing:
+                raise ValueError(f"{PLUGIN_NAME}: no bands for emitters {missing}")
+            self.tables = {}
+            for e in self.emitter_ids:
+                t = band_table(grid, bands[e])
+                dev = {k: mi.Float(v.reshape(-1)) for k, v in t.items()}
+                for v in dev.values():
+                    dr.make_opaque(v)
+                self.tables[e] = dev
+
+        def aov_names(self):
+            return [c for e in self.emitter_ids for c in channel_names(e)]
+
+        def to_string(self):
+            return (f"MultiLightIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
+                    f"emitters={self.emitter_ids}]")
+
+        # ---- the estimator
+        def _emitters(self, scene):
+            by_id = {e.id(): e for e in scene.emitters()}
+            missing = [e for e in self.emitter_ids if e not in by_id]
+            if missing:
+                raise RuntimeError(f"{PLUGIN_NAME}: emitters not found in the scene: {missing}")
+            ems = [by_id[e] for e in self.emitter_ids]
+            delta = [mi.has_flag(e.flags(), mi.EmitterFlags.Delta) for e in ems]
+            infinite = [mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) for e in ems]
+            bad = [self.emitter_ids[i] for i in range(len(ems)) if not (delta[i] or infinite[i])]
+            if bad:
+                raise ValueError(f"{PLUGIN_NAME}: only delta lights and environment emitters are supported, "
+                                 f"not {bad}")
+            env = [i for i in range(len(ems)) if infinite[i] and not delta[i]]  # directional is infinite too
+            if len(env) > 1:
+                raise ValueError(f"{PLUGIN_NAME}: at most one environment emitter, got {len(env)}")
+            return ems, delta, infinite, (env[0] if env else None)
+
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            ems, delta, infinite, env = self._emitters(scene)
+            n = len(ems)
+            spectral = bool(mi.is_spectral)
+            if spectral and set(self.tables) != set(self.emitter_ids):
+                raise RuntimeError(f"{PLUGIN_NAME}: spectral variants need set_bands() before rendering")
+            # Groups share a throughput and wavelengths: all emitters in RGB, one per emitter in spectral.
+            groups = [[e] for e in range(n)] if spectral else [list(range(n))]
+            group_of = {e: g for g, members in enumerate(groups) for e in members}
+            lead = group_of[env] if env is not None else 0  # its BSDF sample steers the path
+            wavelengths, lane_w = [None] * len(groups), [None] * len(groups)
+            if spectral:
+                for g, (e,) in enumerate(groups):
+                    wavelengths[g], lane_w[g] = _sample_wavelengths(mi, self.tables[self.emitter_ids[e]],
+                                                                    sampler.next_1d(active))
+            # Light-only groups need their throughput past the first vertex only if there is a second one.
+            continues = self.max_depth > 2
+            update_group = [g == lead or continues for g in range(len(groups))]
+            needs_bsdf_sample = env is not None or continues
+            ctx = mi.BSDFContext()
+
+            def body(sampler, ray, depth, active, valid_ray, eta, prev_si, prev_pdf, prev_delta, beta, acc):
+                si = scene.ray_intersect(ray, mi.RayFlags.All, depth == 0, active)
+                acc = list(acc)
+                beta = list(beta)
+                # ---- environment hit by the previous BSDF sample (MIS against env sampling)
+                if env is not None:
+                    hit = active & ~si.is_valid()
+                    if self.hide_emitters:
+                        hit &= depth > 0
+                    si_e = _with_wavelengths(mi, si, wavelengths[group_of[env]])
+                    ds = dr.zeros(mi.DirectionSample3f)  # the env's pdf needs only the direction
+                    ds.d = -si.wi  # an escaped ray's wi is -ray.d (world)
+                    em_pdf = dr.select(prev_delta, 0.0, ems[env].pdf_direction(prev_si, ds, hit & ~prev_delta))
+                    le = ems[env].eval(si_e, hit & (prev_pdf > 0)) * _mis_weight(prev_pdf, em_pdf)
+                    acc[env] = dr.select(hit, acc[env] + beta[group_of[env]] * le, acc[env])
+
+                active_next = active & (depth + 1 < self.max_depth) & si.is_valid()
+                bsdf = si.bsdf(ray)
+                flags = bsdf.flags()
+                active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth)
+                transmits = mi.has_flag(flags, mi.BSDFFlags.Transmission)
+                # ---- next-event estimation: every emitter, one shadow ray each
+                # One 2D sample per vertex, as Mitsuba's `path` draws for its emitter sample (used by the
+                # environment; delta lights ignore it): with the same seed, each light's image then uses
+                # the same random numbers as its per-light render (RGB `path`: identical up to rounding).
+                u_em = sampler.next_2d()
+                si_g = [_with_wavelengths(mi, si, wavelengths[g]) for g in range(len(groups))]
+                for e in range(n):
+                    s = si_g[group_of[e]]
+                    ds, em_w = ems[e].sample_direction(s, mi.Point2f(0.5, 0.5) if delta[e] else u_em, active_em)
+                    ok = active_em & (ds.pdf != 0.0)
+                    # A reflecting BSDF is 0 for light below the shading horizon: skip the shadow ray.
+                    ok &= (mi.Frame3f.cos_theta(si.to_local(ds.d)) > 0) | transmits
+                    # Directional and environment: a ray to infinity (their ds.p depends on the scene's
+                    # bounding sphere, a per-scene literal that would recompile the kernel every scene).
+                    shadow = si.spawn_ray(ds.d) if infinite[e] else si.spawn_ray_to(ds.p)
+                    ok &= ~scene.ray_test(shadow, ok)
+                    wo = si.to_local(ds.d)
+                    if delta[e]:
+                        val = bsdf.eval(ctx, s, wo, ok)
+                        mis = mi.Float(1.0)
+                    else:
+                        val, pdf = bsdf.eval_pdf(ctx, s, wo, ok)
+                        mis = _mis_weight(ds.pdf, pdf)
+                    acc[e] = dr.select(ok, acc[e] + beta[group_of[e]] * val * em_w * mis, acc[e])
+
+                valid_ray = valid_ray | (active & si.is_valid())
+                if not needs_bsdf_sample:
+                    return sampler, ray, depth, active & False, valid_ray, eta, prev_si, prev_pdf, prev_delta, \
+                        beta, acc
+                # ---- BSDF sampling: the lead group picks the direction; the others reuse its random numbers
+                u1, u2 = sampler.next_1d(), sampler.next_2d()
+                bs, w_lead = bsdf.sample(ctx, si_g[lead], u1, u2, active_next)
+                for g in range(len(groups)):
+                    if g == lead:
+                        beta[g] = beta[g] * w_lead
+                    elif update_group[g]:
+                        beta[g] = beta[g] * bsdf.sample(ctx, si_g[g], u1, u2, active_next)[1]
+                ray = si.spawn_ray(si.to_world(bs.wo))
+                eta = eta * bs.eta
+                prev_si = mi.Interaction3f(si.t, si.time, si.wavelengths, si.p, si.n)
+                prev_pdf = bs.pdf
+                prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+                # ---- Russian roulette on the largest throughput of any group (one decision per path)
+                depth = dr.select(si.is_valid(), depth + 1, depth)
+                beta_max = dr.max(mi.unpolarized_spectrum(beta[0]))
+                for g in range(1, len(groups)):
+                    if update_group[g]:
+                        beta_max = dr.maximum(beta_max, dr.max(mi.unpolarized_spectrum(beta[g])))
+                rr_prob = dr.minimum(beta_max * eta * eta, 0.95)
+                rr_active = depth >= self.rr_depth
+                rr_continue = sampler.next_1d() < rr_prob
+                beta = [dr.select(rr_active, b / rr_prob, b) for b in beta]
+                active = active_next & (~rr_active | rr_continue) & (beta_max != 0.0)
+                return sampler, ray, depth, active, valid_ray, eta, prev_si, prev_pdf, prev_delta, beta, acc
+
+            # as Mitsuba's `path`: a camera ray that escapes counts only if the environment is visible
+            valid0 = mi.Bool(not self.hide_emitters and env is not None)
+            state = (sampler, mi.Ray3f(ray), mi.UInt32(0), mi.Bool(active), valid0, mi.Float(1.0),
+                     dr.zeros(mi.Interaction3f), mi.Float(1.0), mi.Bool(True),
+                     [mi.Spectrum(1.0) for _ in groups], [mi.Spectrum(0.0) for _ in range(n)])
+            state = dr.while_loop(state=state, cond=lambda *s: s[3], body=body,
+                                  labels=("sampler", "ray", "depth", "active", "valid_ray", "eta", "prev_si",
+                                          "prev_pdf", "prev_delta", "beta", "acc"),
+                                  label=PLUGIN_NAME)
+            valid_ray, acc = state[4], state[10]
+            aovs = []
+            for e in range(n):
+                if spectral:
+                    g = group_of[e]
+                    a = mi.unpolarized_spectrum(acc[e])
+                    rgb = [dr.sum(a * lane_w[g][i]) for i in range(3)]
+                else:
+                    rgb = [acc[e][i] for i in range(3)]
+                aovs.extend(dr.select(valid_ray, c, 0.0) for c in rgb)
+            if spectral:  # the film's own channels are not used: camera channels are the AOVs
+                main = mi.Spectrum(0.0)
+            else:
+                main = mi.Spectrum(0.0)
+                for e in range(n):
+                    main = main + acc[e]
+                main = dr.select(valid_ray, main, 0.0)
+            return main, valid_ray, aovs
+
+    return MultiLightIntegrator
+
+
+def register(variant: str | None = None) -> str:
+    """Register `msps_multilight` for the current (or given, must be current) variant; idempotent."""
+    import mitsuba as mi
+
+    v = variant or mi.variant()
+    if v is None:
+        raise RuntimeError(f"set a Mitsuba variant before registering {PLUGIN_NAME}")
+    if v not in _REGISTERED:
+        cls = _plugin_class(v)
+        mi.register_integrator(PLUGIN_NAME, lambda props: cls(props))
+        _REGISTERED.add(v)
+    return v
+
+
+_REGISTERED: set[str] = set()
+
+
+def read_emitter_images(film, emitter_ids: Sequence[str]) -> list[np.ndarray]:
+    """Each emitter's (H, W, 3) float32 image, read by AOV channel name from the developed film."""
+    bmp = film.bitmap()
+    names = [f.name for f in bmp.struct_()]
+    data = np.array(bmp, dtype=np.float32, copy=False)
+    out = []
+    for e in emitter_ids:
+        try:
+            idx = [names.index(c) for c in channel_names(e)]
+        except ValueError:
+            raise RuntimeError(f"film has no channels for emitter '{e}' (channels: {names})") from None
+        out.append(np.ascontiguousarray(data[..., idx]))
+    return out
