@@ -39,6 +39,20 @@ def read_patches(h) -> dict[str, np.ndarray]:
     return {name: h[key][()] for name, key in K.PATCH_ARRAYS.items()}
 
 
+def read_patch_layout(h) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """{'image', 'normal', 'mask'}: (shape, dtype) of an open shard's patch arrays, nothing decoded."""
+    return {name: (h[key].shape, h[key].dtype) for name, key in K.PATCH_ARRAYS.items()}
+
+
+def read_patches_into(h, out: dict[str, np.ndarray]) -> None:
+    """Decode every patch of an open shard into the leading rows of preallocated C-contiguous
+    arrays of the stored dtypes: reused buffers skip the page faults of fresh ones."""
+    for name, key in K.PATCH_ARRAYS.items():
+        d = h[key]
+        if len(d):
+            d.read_direct(out[name], dest_sel=np.s_[:len(d)])
+
+
 def read_calibration(h) -> dict[str, np.ndarray]:
     """{'frame_index' (per patch), 'light_dirs', 'crosstalk' (per frame)} of an open shard."""
     return {"frame_index": h[K.PATCH_FRAME_INDEX][()], "light_dirs": h[K.FRAME_LIGHT_DIRS][()],
