@@ -105,7 +105,7 @@ class PatchDataset(Dataset):
         if self._pid != os.getpid():  # new process (DataLoader worker): reopen everything
             self._handles, self._decoded, self._scratch, self._pid = {}, {}, {}, os.getpid()
         if s not in self._handles:
-            self._handles[s] = open_shard(self.shards[s][0])
+            self._handles[s] = open_shard(self.shards[s][0], chunk_cache=False)  # whole-array reads only
         return self._handles[s]
 
     def locate(self, idx: int) -> tuple[int, int]:

@@ -27,11 +27,15 @@ def shard_errors(path: str | Path):
                                "and re-render bad shards with `msps render ... --resume`") from None
 
 
-def open_shard(path: str | Path, mode: str = "r"):
-    """An open h5py.File of a shard (the caller closes it)."""
+def open_shard(path: str | Path, mode: str = "r", chunk_cache: bool = True):
+    """An open h5py.File of a shard (the caller closes it).
+
+    `chunk_cache=False` for whole-array reads: HDF5 then decompresses each chunk straight
+    into the caller's array instead of through its chunk cache (~10% less CPU per shard).
+    """
     import h5py
 
-    return h5py.File(path, mode)
+    return h5py.File(path, mode) if chunk_cache else h5py.File(path, mode, rdcc_nbytes=0)
 
 
 def read_patches(h) -> dict[str, np.ndarray]:
@@ -60,7 +64,7 @@ def read_calibration(h) -> dict[str, np.ndarray]:
 
 
 def read_shard_patches(path: str | Path) -> dict[str, np.ndarray]:
-    with shard_errors(path), open_shard(path) as h:
+    with shard_errors(path), open_shard(path, chunk_cache=False) as h:
         return read_patches(h)
 
 
