@@ -412,10 +412,11 @@ class ShardBatchSampler(Sampler[list[int]]):
     window's remainder (fewer than `batch_size`) is carried into the next
     window, so every batch has the requested size — one at a shard boundary
     spans two shards — except the epoch's last, which `drop_last` drops.  Why
-    windows: a batch needs one or two decoded shards, and a window (plus the
-    carried shard) fits the dataset's LRU of decoded shards, so every shard is
+    windows: a batch needs one or two decoded shards, and only a window (plus
+    the carried shard) is held decoded at a time — by `ShardLoader`, or in the
+    dataset's LRU when a plain DataLoader uses this sampler — so every shard is
     decompressed once per epoch while consecutive batches still come from
-    different objects.
+    different objects.  `plan()` is a pure function of (seed, epoch).
     """
 
     def __init__(self, dataset: PatchDataset, batch_size: int, shuffle: bool = True, seed: int = 0,
