@@ -2,7 +2,9 @@
 
 Usage: python benchmarks/bench_loader.py --data DIR [DIR ...] [--batch 64] [--epochs 1] [--workers 2]
 
-Modes: PatchDataset through DataLoader's default collate (per-item dicts);
+Modes: the HDF5 decode alone (every shard's patch arrays once, no batches: the
+floor of any loader that reads the shards each epoch); PatchDataset through
+DataLoader's default collate (per-item dicts);
 `make_loader` with 0 and `--workers` workers; the same on `PatchDataset(cache=True)`
 (every shard decoded into memory first; its load time is printed); and the
 floor of slicing the same arrays in memory (numpy fancy-index + float32).
@@ -23,8 +25,8 @@ import torch
 from torch.utils.data import DataLoader
 
 from msps_render.data import PatchDataset, ShardBatchSampler, make_loader
+from msps_render.dataset import open_shard, read_patch_layout, read_patches_into, shard_summary
 from msps_render.dataset import schema as K
-from msps_render.dataset import shard_summary
 
 
 def cpu_seconds() -> tuple[float, float] | None:
@@ -63,6 +65,24 @@ def warm_workers(loader) -> None:
     for i, _ in enumerate(loader):
         if i == 3:
             break
+
+
+def decode_rate(ds: PatchDataset, epochs: int) -> tuple[float, float | None, float | None]:
+    """Every shard's image, normal and mask decoded into reused arrays, as `make_loader` does."""
+    bufs: dict[str, np.ndarray] = {}
+    n, c0, t = 0, cpu_seconds(), time.perf_counter()
+    for _ in range(epochs):
+        for path, count, _ in ds.shards:
+            with open_shard(path, chunk_cache=False) as h:
+                for name, (shape, dtype) in read_patch_layout(h).items():
+                    if name not in bufs or len(bufs[name]) < shape[0] or bufs[name].shape[1:] != shape[1:]:
+                        bufs[name] = np.empty(shape, dtype)
+                read_patches_into(h, bufs)
+            n += count
+    wall, c1 = time.perf_counter() - t, cpu_seconds()
+    if c0 is None:
+        return n / wall, None, None
+    return n / wall, (c1[0] - c0[0]) / n * 1e6, 0.0
 
 
 def memory_rate(ds: PatchDataset, batch: int, epochs: int) -> tuple[float, float | None, float | None]:
@@ -107,7 +127,7 @@ def main():
         Path(p).read_bytes()
     print(f"corpus: {' + '.join(a.data)}: {len(ds):,} patches in {len(ds.shards)} shards "
           f"({describe(ds)}); batch {a.batch}, {a.epochs} epoch(s) per mode")
-    rows = []
+    rows = [("HDF5 decode only (each shard once, no batches)", decode_rate(ds, a.epochs))]
     dl = DataLoader(ds, batch_sampler=ShardBatchSampler(ds, a.batch, seed=0), num_workers=0)
     rows.append(("PatchDataset via default collate (per-item dicts), 0 workers", measure(dl, a.epochs)))
     for workers in (0, a.workers):
