@@ -36,7 +36,10 @@ def _shard_list(root: Path, condition: str | None) -> list[tuple[Path, int, str]
     return [(m.shard_path(e.name), e.n_patches, e.condition) for e in m.shards_of(condition)]
 
 
-def _slot_layout(layout: dict[str, tuple[tuple[int, ...], np.dtype]]) -> dict[str, tuple[int, tuple[int, ...], np.dtype]]:
+Layout = dict[str, tuple[tuple[int, ...], np.dtype]]  # {array: (stored shape, dtype)} of a shard
+
+
+def _slot_layout(layout: Layout) -> dict[str, tuple[int, tuple[int, ...], np.dtype]]:
     """{name: (byte offset, shape, dtype)} of a decoded shard inside a slot: image and normal
     (N,C,P,P), mask (N,1,P,P), in the stored dtypes (a batch is then a plain row gather)."""
     out, off = {}, 0
@@ -47,12 +50,12 @@ def _slot_layout(layout: dict[str, tuple[tuple[int, ...], np.dtype]]) -> dict[st
     return out
 
 
-def _slot_bytes(layout: dict) -> int:
+def _slot_bytes(layout: Layout) -> int:
     off, shape, dtype = list(_slot_layout(layout).values())[-1]
     return off + int(np.prod(shape)) * dtype.itemsize
 
 
-def _slot_views(buf: np.ndarray, layout: dict) -> dict[str, np.ndarray]:
+def _slot_views(buf: np.ndarray, layout: Layout) -> dict[str, np.ndarray]:
     """Typed views of a decoded shard in the uint8 buffer `buf`."""
     return {name: buf[off:off + int(np.prod(shape)) * dtype.itemsize].view(dtype).reshape(shape)
             for name, (off, shape, dtype) in _slot_layout(layout).items()}
@@ -224,7 +227,8 @@ class PatchDataset(Dataset):
 
 
 def _float32(rows: np.ndarray, out: np.ndarray) -> None:
-    """`out[...] = rows` through torch's vectorised cast (numpy's float16 -> float32 is ~5x slower)."""
+    """`out[...] = rows` through torch's vectorised cast (numpy's float16 -> float32 is several
+    times slower)."""
     torch.from_numpy(out).copy_(torch.from_numpy(rows))
 
 
