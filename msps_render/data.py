@@ -1,11 +1,17 @@
-"""Training-side access to a dataset directory: `PatchDataset` (torch) and whole-frame iteration.
+"""Training-side access to a dataset directory: `PatchDataset` (torch), `make_loader`, whole frames.
 
 h5py handles are opened lazily in whichever process reads (DataLoader workers
 fork/spawn after construction, and HDF5 handles must not cross processes).
-`__getitems__` reads a whole batch from each shard with one sorted
-fancy-index read per array, and `ShardBatchSampler` keeps each batch inside one
-shard (two at a shard boundary), so random access costs one HDF5 read per batch
-instead of per patch.
+
+Reading a shard is dominated by HDF5's filters (fletcher32 + lzf + unshuffle
+cost ~80 us per 40x40 float16 patch, ~85% of the loader), so `make_loader`
+decodes every shard once per epoch, whole, in exactly one process (a
+DataLoader worker when `num_workers > 0`: a disjoint share each, so two
+workers decode twice as fast), into a reusable buffer ("slot", shared memory
+with workers: nothing is copied between processes and no fresh pages are
+faulted in), and the main process cuts the `ShardBatchSampler` plan's batches
+out of the decoded shards.  Batches, their order and their contents depend on
+(seed, epoch) only, not on the number of workers.
 """
 from __future__ import annotations
 
@@ -15,17 +21,44 @@ from typing import Iterator, Sequence
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset, Sampler
+from torch.utils.data import DataLoader, Dataset, Sampler
 
 from msps_render.dataset import (SHARD_DIR, WholeFrame, iter_whole_frames, load_manifest, open_shard,
-                                 read_patches, read_shard_calibration, read_shard_patches, shard_errors,
-                                 verify_dataset)
+                                 read_calibration, read_patch_layout, read_patches, read_patches_into,
+                                 read_shard_patches, shard_errors, verify_dataset)
 from msps_render.errors import InputError
+
+_ALIGN = 64  # byte alignment of the arrays inside a slot
 
 
 def _shard_list(root: Path, condition: str | None) -> list[tuple[Path, int, str]]:
     m = load_manifest(root)
     return [(m.shard_path(e.name), e.n_patches, e.condition) for e in m.shards_of(condition)]
+
+
+Layout = dict[str, tuple[tuple[int, ...], np.dtype]]  # {array: (stored shape, dtype)} of a shard
+
+
+def _slot_layout(layout: Layout) -> dict[str, tuple[int, tuple[int, ...], np.dtype]]:
+    """{name: (byte offset, shape, dtype)} of a decoded shard inside a slot: image and normal
+    (N,C,P,P), mask (N,1,P,P), in the stored dtypes (a batch is then a plain row gather)."""
+    out, off = {}, 0
+    for name, (shape, dtype) in layout.items():
+        shape = (shape[0], shape[3], shape[1], shape[2]) if len(shape) == 4 else (shape[0], 1) + tuple(shape[1:])
+        out[name] = (off, shape, np.dtype(dtype))
+        off += -(-int(np.prod(shape)) * np.dtype(dtype).itemsize // _ALIGN) * _ALIGN
+    return out
+
+
+def _slot_bytes(layout: Layout) -> int:
+    off, shape, dtype = list(_slot_layout(layout).values())[-1]
+    return off + int(np.prod(shape)) * dtype.itemsize
+
+
+def _slot_views(buf: np.ndarray, layout: Layout) -> dict[str, np.ndarray]:
+    """Typed views of a decoded shard in the uint8 buffer `buf`."""
+    return {name: buf[off:off + int(np.prod(shape)) * dtype.itemsize].view(dtype).reshape(shape)
+            for name, (off, shape, dtype) in _slot_layout(layout).items()}
 
 
 class PatchDataset(Dataset):
@@ -35,7 +68,7 @@ class PatchDataset(Dataset):
     light_dirs (3,3), crosstalk (3,3), plus shard/frame/index ids.
     """
 
-    decoded_shards = 8  # LRU size of decoded shards per process (~12 MB each for 8x128^2 frames)
+    decoded_shards = 8  # LRU size of decoded shards per process for per-item access (~15 MB each)
 
     def __init__(self, root: str | Path | Sequence[str | Path], condition: str | None = None,
                  cache: bool = False, verify: bool = False):
@@ -56,6 +89,7 @@ class PatchDataset(Dataset):
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
         self._handles: dict[int, object] = {}
         self._decoded: dict[int, dict] = {}
+        self._scratch: dict[str, np.ndarray] = {}
         self._pid = None
         self._meta = [self._read_meta(p) for p, _, _ in self.shards]
         self._cache = [self._read_all(p) for p, _, _ in self.shards] if cache else None
@@ -63,7 +97,8 @@ class PatchDataset(Dataset):
     # -------------------------------------------------------------- internals
     @staticmethod
     def _read_meta(path: Path) -> dict:
-        return read_shard_calibration(path)
+        with shard_errors(path), open_shard(path) as h:
+            return {**read_calibration(h), "layout": read_patch_layout(h)}
 
     @staticmethod
     def _read_all(path: Path) -> dict:
@@ -71,9 +106,9 @@ class PatchDataset(Dataset):
 
     def _h(self, s: int):
         if self._pid != os.getpid():  # new process (DataLoader worker): reopen everything
-            self._handles, self._decoded, self._pid = {}, {}, os.getpid()
+            self._handles, self._decoded, self._scratch, self._pid = {}, {}, {}, os.getpid()
         if s not in self._handles:
-            self._handles[s] = open_shard(self.shards[s][0])
+            self._handles[s] = open_shard(self.shards[s][0], chunk_cache=False)  # whole-array reads only
         return self._handles[s]
 
     def locate(self, idx: int) -> tuple[int, int]:
@@ -84,22 +119,26 @@ class PatchDataset(Dataset):
         s = int(np.searchsorted(self.offsets, idx, side="right") - 1)
         return s, int(idx - self.offsets[s])
 
-    def _arrays(self, s: int, local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _shard_arrays(self, s: int) -> dict[str, np.ndarray]:
+        """Every patch of shard `s` as stored (float16 NHWC): from the cache, else the LRU, else decoded."""
         if self._cache is not None:
-            c = self._cache[s]
+            return self._cache[s]
+        c = self._decoded.get(s)
+        if c is None:
+            # Decode the whole shard once: h5py fancy indexing costs ~0.3 ms per index and
+            # re-reading spans re-decompresses them; a small LRU of decoded shards serves the
+            # per-item / get_batch paths and repeated validation passes over the same shards.
+            with shard_errors(self.shards[s][0]):
+                c = read_patches(self._h(s))
+            self._decoded[s] = c
+            while len(self._decoded) > self.decoded_shards:
+                self._decoded.pop(next(iter(self._decoded)))
         else:
-            c = self._decoded.get(s)
-            if c is None:
-                # Decode the whole shard once: h5py fancy indexing costs ~0.3 ms per index and
-                # re-reading spans re-decompresses them; ShardBatchSampler visits a shard's batches
-                # close together, so a small LRU of decoded shards serves them all.
-                with shard_errors(self.shards[s][0]):
-                    c = read_patches(self._h(s))
-                self._decoded[s] = c
-                while len(self._decoded) > self.decoded_shards:
-                    self._decoded.pop(next(iter(self._decoded)))
-            else:
-                self._decoded[s] = self._decoded.pop(s)  # most recently used
+            self._decoded[s] = self._decoded.pop(s)  # most recently used
+        return c
+
+    def _arrays(self, s: int, local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        c = self._shard_arrays(s)
         return c["image"][local], c["normal"][local], c["mask"][local]
 
     def _pack(self, s: int, local: np.ndarray) -> dict:
@@ -116,6 +155,36 @@ class PatchDataset(Dataset):
             "frame": torch.from_numpy(f.astype(np.int64)),
             "index": torch.from_numpy(local.astype(np.int64) + self.offsets[s]),
         }
+
+    def shard_bytes(self, s: int) -> int:
+        """Bytes of shard `s` decoded (what `read_shard_into` needs)."""
+        return _slot_bytes(self._meta[s]["layout"])
+
+    def read_shard_into(self, s: int, buf: np.ndarray) -> dict[str, np.ndarray]:
+        """Decode every patch of shard `s` into the uint8 buffer `buf`; returns typed views of it:
+        image, normal (N,3,P,P) and mask (N,1,P,P) in the stored dtypes.
+
+        How `make_loader` reads a shard, once per epoch: HDF5 decodes into per-process scratch
+        buffers that are reused (fresh ones cost a page fault per 4 KiB), and the transpose to
+        channels-first is the one copy into `buf`.
+        """
+        layout = self._meta[s]["layout"]
+        views = _slot_views(buf, layout)
+        if self._cache is not None:
+            src = self._cache[s]
+        else:
+            with shard_errors(self.shards[s][0]):
+                h = self._h(s)  # first: a new process starts with fresh handles and scratch
+                for name, (shape, dtype) in layout.items():
+                    have = self._scratch.get(name)
+                    if have is None or have.dtype != dtype or have.shape[1:] != shape[1:] or len(have) < shape[0]:
+                        self._scratch[name] = np.empty(shape, dtype)
+                read_patches_into(h, self._scratch)
+            src = {name: a[:layout[name][0][0]] for name, a in self._scratch.items()}
+        np.copyto(views["image"], src["image"].transpose(0, 3, 1, 2))
+        np.copyto(views["normal"], src["normal"].transpose(0, 3, 1, 2))
+        np.copyto(views["mask"][:, 0], src["mask"])
+        return views
 
     # ---------------------------------------------------------------- Dataset
     def __len__(self) -> int:
@@ -157,34 +226,185 @@ class PatchDataset(Dataset):
         self._handles = {}
 
 
-class _BatchView(Dataset):
-    """Lets a DataLoader fetch whole batches via `get_batch` (no per-item split + re-collate)."""
+def _float32(rows: np.ndarray, out: np.ndarray) -> None:
+    """`out[...] = rows` through torch's vectorised cast (numpy's float16 -> float32 is several
+    times slower)."""
+    torch.from_numpy(out).copy_(torch.from_numpy(rows))
+
+
+def _assemble(idx: np.ndarray, runs: list[tuple[int, int, int]], live: dict[int, dict[str, np.ndarray]],
+              meta: list[dict], offsets: np.ndarray) -> dict[str, torch.Tensor]:
+    """The batch dict (layout of `PatchDataset.get_batch`) of dataset indices `idx`, whose stretches
+    `runs` = [(shard, start, stop)] are rows of the decoded shards in `live`."""
+    n, first = len(idx), live[runs[0][0]]
+    out = {k: np.empty((n,) + first[k].shape[1:], np.float32) for k in ("image", "normal", "mask")}
+    out.update(light_dirs=np.empty((n, 3, 3), np.float32), crosstalk=np.empty((n, 3, 3), np.float32),
+               shard=np.empty(n, np.int64), frame=np.empty(n, np.int64), index=idx.copy())
+    for s, a, z in runs:
+        d, m, local = live[s], meta[s], idx[a:z] - offsets[s]
+        for k in ("image", "normal", "mask"):
+            _float32(d[k][local], out[k][a:z])
+        f = m["frame_index"][local]
+        out["frame"][a:z], out["shard"][a:z] = f, s
+        out["light_dirs"][a:z], out["crosstalk"][a:z] = m["light_dirs"][f], m["crosstalk"][f]
+    return {k: torch.from_numpy(v) for k, v in out.items()}
+
+
+class _Slots:
+    """Decode buffers reused across shards and epochs (main-process bookkeeping).
+
+    Shared-memory tensors when workers decode (sent along with the shard index: torch passes
+    the handle once per worker and caches the mapping), plain arrays otherwise.  A slot is
+    taken when its shard is dispatched and given back after the shard's last batch, so at
+    most (shards a batch window needs + shards in flight) exist.
+    """
+
+    def __init__(self, nbytes: int, shared: bool):
+        self.nbytes, self.shared = nbytes, shared
+        self.bufs: list[torch.Tensor] = []
+        self.free: list[int] = []
+
+    def take(self) -> int:
+        if self.free:
+            return self.free.pop()
+        t = torch.empty(self.nbytes, dtype=torch.uint8)
+        self.bufs.append(t.share_memory_() if self.shared else t)
+        return len(self.bufs) - 1
+
+    def give(self, k: int) -> None:
+        self.free.append(k)
+
+    def reset(self) -> None:
+        self.free = list(range(len(self.bufs)))[::-1]
+
+
+class _ShardView(Dataset):
+    """(shard, slot tensor) -> shard decoded into the slot, in a DataLoader worker.  An `InputError`
+    is returned, so the loader re-raises it as is (one line naming the shard) instead of
+    DataLoader's multi-line wrapper."""
 
     def __init__(self, ds: PatchDataset):
         self.ds = ds
 
     def __len__(self) -> int:
-        return len(self.ds)
+        return len(self.ds.shards)
 
-    def __getitems__(self, indices: list[int]) -> list[dict]:
-        return [self.ds.get_batch(indices)]
+    def __getitem__(self, item: tuple[int, torch.Tensor]) -> int | InputError:
+        s, buf = item
+        try:
+            self.ds.read_shard_into(s, buf.numpy())
+        except InputError as e:
+            return e
+        return s
 
-    def __getitem__(self, idx: int) -> dict:  # pragma: no cover - DataLoader uses __getitems__
-        return self.ds[idx]
+
+class _Dispatch(Sampler[tuple[int, torch.Tensor]]):
+    """The shards of an epoch in first-use order, each with a free slot; iterated by the decoding
+    DataLoader in the main process as it dispatches (so a slot is taken only when needed)."""
+
+    def __init__(self, slots: _Slots) -> None:
+        self.slots = slots
+        self.order: list[int] = []
+        self.taken: list[int] = []
+
+    def __iter__(self) -> Iterator[tuple[int, torch.Tensor]]:
+        # Runs after DataLoader has drained the previous epoch's tasks: every slot is free again.
+        self.slots.reset()
+        self.taken = []
+        for s in list(self.order):
+            k = self.slots.take()
+            self.taken.append(k)
+            yield s, self.slots.bufs[k]
+
+    def __len__(self) -> int:
+        return len(self.order)
 
 
-def _first(batch: list[dict]) -> dict:
-    return batch[0]
+class ShardLoader:
+    """Iterates the batches of a `ShardBatchSampler`, cut from whole decoded shards.
+
+    Each epoch the plan's shards are decoded in the order the batches first need them, each
+    by exactly one process: inline with `num_workers=0`, otherwise by persistent DataLoader
+    workers, which decode into shared-memory slots and return only the shard index.  The
+    main process keeps only the shards later batches still need and gathers each batch with
+    one row copy + float32 cast per array.  Batches, their order and contents depend on
+    (seed, epoch) only, never on the number of workers.  One iteration at a time: starting a
+    new one ends the previous (its iterator raises if resumed).
+    """
+
+    def __init__(self, dataset: PatchDataset, batch_sampler: "ShardBatchSampler", num_workers: int = 0,
+                 prefetch_shards: int = 2):
+        self.dataset, self.batch_sampler, self.num_workers = dataset, batch_sampler, num_workers
+        nbytes = max([dataset.shard_bytes(s) for s in range(len(dataset.shards))], default=0)
+        self._slots = _Slots(nbytes, shared=num_workers > 0)
+        self._dispatch = _Dispatch(self._slots)
+        self._decoder = None
+        self._run = 0
+        if num_workers > 0:
+            self._decoder = DataLoader(_ShardView(dataset), sampler=self._dispatch, batch_size=None,
+                                       num_workers=num_workers, prefetch_factor=prefetch_shards,
+                                       persistent_workers=True)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.batch_sampler.set_epoch(epoch)
+
+    def __len__(self) -> int:
+        return len(self.batch_sampler)
+
+    def _decoded(self, order: list[int]) -> Iterator[tuple[int, int]]:
+        """(shard, slot) of each shard of `order`, decoded, in order."""
+        if self._decoder is None:
+            self._slots.reset()
+            for s in order:
+                k = self._slots.take()
+                self.dataset.read_shard_into(s, self._slots.bufs[k].numpy())
+                yield s, k
+            return
+        self._dispatch.order = order
+        for i, got in enumerate(self._decoder):
+            if isinstance(got, InputError):
+                raise got
+            yield got, self._dispatch.taken[i]
+
+    def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
+        self._run += 1
+        run, ds = self._run, self.dataset
+        offsets = ds.offsets
+        batches = self.batch_sampler.plan()
+        runs = []  # per batch: [(shard, start, stop)], maximal stretches of one shard
+        order: list[int] = []
+        last_use: dict[int, int] = {}
+        for b, idx in enumerate(batches):
+            shard = np.searchsorted(offsets, idx, side="right") - 1
+            cut = np.concatenate([[0], np.flatnonzero(np.diff(shard)) + 1, [len(idx)]])
+            runs.append([(int(shard[a]), int(a), int(z)) for a, z in zip(cut[:-1], cut[1:])])
+            for s, _, _ in runs[-1]:
+                if s not in last_use:
+                    order.append(s)
+                last_use[s] = b
+        stream = self._decoded(order)
+        live: dict[int, dict[str, np.ndarray]] = {}
+        slot_of: dict[int, int] = {}
+        for b, idx in enumerate(batches):
+            if run != self._run:  # its slots and the workers now serve the newer iteration
+                raise RuntimeError("this ShardLoader iteration was superseded by a newer one")
+            for s, _, _ in runs[b]:
+                while s not in live:
+                    got, k = next(stream)
+                    live[got] = _slot_views(self._slots.bufs[k].numpy(), ds._meta[got]["layout"])
+                    slot_of[got] = k
+            yield _assemble(idx, runs[b], live, ds._meta, offsets)
+            for s, _, _ in runs[b]:
+                if last_use[s] == b and s in live:
+                    del live[s]
+                    self._slots.give(slot_of.pop(s))
 
 
 def make_loader(ds: PatchDataset, batch_size: int, shuffle: bool = True, num_workers: int = 0, seed: int = 0,
-                drop_last: bool = False) -> "torch.utils.data.DataLoader":
-    """The fast way to iterate a PatchDataset: shard-aware batches fetched whole."""
-    from torch.utils.data import DataLoader
-
+                drop_last: bool = False) -> ShardLoader:
+    """The fast way to iterate a PatchDataset: `ShardBatchSampler` batches cut from whole decoded shards."""
     sampler = ShardBatchSampler(ds, batch_size, shuffle=shuffle, seed=seed, drop_last=drop_last)
-    return DataLoader(_BatchView(ds), batch_sampler=sampler, collate_fn=_first, num_workers=num_workers,
-                      persistent_workers=num_workers > 0)
+    return ShardLoader(ds, sampler, num_workers=num_workers)
 
 
 class ShardBatchSampler(Sampler[list[int]]):
@@ -196,10 +416,11 @@ class ShardBatchSampler(Sampler[list[int]]):
     window's remainder (fewer than `batch_size`) is carried into the next
     window, so every batch has the requested size — one at a shard boundary
     spans two shards — except the epoch's last, which `drop_last` drops.  Why
-    windows: a batch needs one or two decoded shards, and a window (plus the
-    carried shard) fits the dataset's LRU of decoded shards, so every shard is
+    windows: a batch needs one or two decoded shards, and only a window (plus
+    the carried shard) is held decoded at a time — by `ShardLoader`, or in the
+    dataset's LRU when a plain DataLoader uses this sampler — so every shard is
     decompressed once per epoch while consecutive batches still come from
-    different objects.
+    different objects.  `plan()` is a pure function of (seed, epoch).
     """
 
     def __init__(self, dataset: PatchDataset, batch_size: int, shuffle: bool = True, seed: int = 0,
@@ -214,7 +435,8 @@ class ShardBatchSampler(Sampler[list[int]]):
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
 
-    def _batches(self) -> list[list[int]]:
+    def plan(self) -> list[np.ndarray]:
+        """This epoch's batches as arrays of dataset indices (a pure function of seed and epoch)."""
         rng = np.random.default_rng([self.seed, self.epoch])
         n = len(self.ds.shards)
         order = rng.permutation(n) if self.shuffle else np.arange(n)
@@ -228,20 +450,21 @@ class ShardBatchSampler(Sampler[list[int]]):
                 parts.append(idx)
             flat = np.concatenate(parts)
             full = len(flat) // self.bs
-            window = [flat[b * self.bs:(b + 1) * self.bs].tolist() for b in range(full)]
+            window = [flat[b * self.bs:(b + 1) * self.bs] for b in range(full)]
             carry = flat[full * self.bs:]
             if self.shuffle:
                 window = [window[i] for i in rng.permutation(len(window))]
             batches.extend(window)
         if len(carry) and not self.drop_last:
-            batches.append(carry.tolist())
+            batches.append(carry)
         return batches
 
     def __iter__(self) -> Iterator[list[int]]:
-        yield from self._batches()
+        yield from (b.tolist() for b in self.plan())
 
     def __len__(self) -> int:
-        return len(self._batches())
+        n = int(self.ds.offsets[-1])
+        return n // self.bs if self.drop_last else -(-n // self.bs)
 
 
 def iter_frames(root: str | Path, condition: str | None = None) -> Iterator[WholeFrame]:

@@ -27,16 +27,34 @@ def shard_errors(path: str | Path):
                                "and re-render bad shards with `msps render ... --resume`") from None
 
 
-def open_shard(path: str | Path, mode: str = "r"):
-    """An open h5py.File of a shard (the caller closes it)."""
+def open_shard(path: str | Path, mode: str = "r", chunk_cache: bool = True):
+    """An open h5py.File of a shard (the caller closes it).
+
+    `chunk_cache=False` for whole-array reads: HDF5 then decompresses each chunk straight
+    into the caller's array instead of through its chunk cache (~10% less CPU per shard).
+    """
     import h5py
 
-    return h5py.File(path, mode)
+    return h5py.File(path, mode) if chunk_cache else h5py.File(path, mode, rdcc_nbytes=0)
 
 
 def read_patches(h) -> dict[str, np.ndarray]:
     """{'image', 'normal', 'mask'}: every patch of an open shard, decoded."""
     return {name: h[key][()] for name, key in K.PATCH_ARRAYS.items()}
+
+
+def read_patch_layout(h) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """{'image', 'normal', 'mask'}: (shape, dtype) of an open shard's patch arrays, nothing decoded."""
+    return {name: (h[key].shape, h[key].dtype) for name, key in K.PATCH_ARRAYS.items()}
+
+
+def read_patches_into(h, out: dict[str, np.ndarray]) -> None:
+    """Decode every patch of an open shard into the leading rows of preallocated C-contiguous
+    arrays of the stored dtypes: reused buffers skip the page faults of fresh ones."""
+    for name, key in K.PATCH_ARRAYS.items():
+        d = h[key]
+        if len(d):
+            d.read_direct(out[name], dest_sel=np.s_[:len(d)])
 
 
 def read_calibration(h) -> dict[str, np.ndarray]:
@@ -46,7 +64,7 @@ def read_calibration(h) -> dict[str, np.ndarray]:
 
 
 def read_shard_patches(path: str | Path) -> dict[str, np.ndarray]:
-    with shard_errors(path), open_shard(path) as h:
+    with shard_errors(path), open_shard(path, chunk_cache=False) as h:
         return read_patches(h)
 
 

@@ -189,7 +189,7 @@ def fit(run: Run, loader, val_loader, log, bar, device: str) -> None:
     done = False
     window_t, window_n, run_loss = time.perf_counter(), 0, []
     while not done and state["epoch"] < t_cfg.epochs:
-        loader.batch_sampler.set_epoch(state["epoch"])
+        loader.set_epoch(state["epoch"])
         for i, b in enumerate(loader):
             if i < state["batch_in_epoch"]:  # resume mid-epoch on the same deterministic order
                 continue
