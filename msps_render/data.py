@@ -61,6 +61,26 @@ def _slot_views(buf: np.ndarray, layout: Layout) -> dict[str, np.ndarray]:
             for name, (off, shape, dtype) in _slot_layout(layout).items()}
 
 
+def available_memory_bytes() -> int:
+    """MemAvailable of this machine (Linux /proc/meminfo); 0 when unknown."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def should_cache(decoded_bytes: int, available_bytes: int, share: float = 0.4) -> bool:
+    """Keep a corpus decoded in memory when it takes at most `share` of the available memory.
+
+    Why: a shard is lzf-compressed HDF5, and decoding it (checksum, lzf, unshuffle) costs
+    ~80 us of CPU per patch -- ~10k patches/s per core, less than a GPU trainer eats; decoded
+    once and kept, batches come at ~50k patches/s (docs/benchmarks.md "Loader")."""
+    return 0 < decoded_bytes <= share * available_bytes
+
+
 class PatchDataset(Dataset):
     """Patches of a dataset directory as dicts of tensors:
 
@@ -93,6 +113,11 @@ class PatchDataset(Dataset):
         self._pid = None
         self._meta = [self._read_meta(p) for p, _, _ in self.shards]
         self._cache = [self._read_all(p) for p, _, _ in self.shards] if cache else None
+
+    def decoded_bytes(self) -> int:
+        """Bytes the decoded patches take in memory (what `cache=True` holds), from the layouts alone."""
+        return int(sum(int(np.prod(shape)) * np.dtype(dtype).itemsize
+                       for m in self._meta for shape, dtype in m["layout"].values()))
 
     # -------------------------------------------------------------- internals
     @staticmethod

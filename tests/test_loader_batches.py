@@ -255,3 +255,15 @@ def test_a_corrupted_shard_is_one_line_naming_it(dataset_dir, tmp_path, workers)
     with pytest.raises(InputError, match=r"shard-00005\.h5: unreadable shard") as e:
         list(make_loader(PatchDataset(out), 16, num_workers=workers))
     assert "\n" not in str(e.value)
+
+
+def test_decoded_bytes_and_the_auto_cache_rule(dataset_dir):
+    """`decoded_bytes` is what `cache=True` really holds; `train.cache = "auto"` keeps a corpus
+    decoded only when it takes at most 40 % of the available memory."""
+    from msps_render.data import PatchDataset, available_memory_bytes, should_cache
+
+    ds = PatchDataset(dataset_dir, cache=True)
+    held = sum(a.nbytes for shard in ds._cache for k, a in shard.items() if k in ("image", "normal", "mask"))
+    assert ds.decoded_bytes() == held > 0
+    assert should_cache(400, 1000) and not should_cache(401, 1000) and not should_cache(1, 0)
+    assert available_memory_bytes() > 0  # Linux: /proc/meminfo

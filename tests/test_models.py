@@ -195,6 +195,11 @@ def test_checkpoint_round_trip_and_resume(tiny_dataset, tmp_path):
                                          "train.val_max_patches=8", "train.epochs=40"])
     with pytest.raises(InputError, match="different model config"):
         train(cfg_same, tiny_dataset, tiny_dataset, run, resume=True, progress=False)
+    # how batches are read (workers, in-memory cache) is not part of what a run is: it may resume
+    # with other values (the batches are the same, tests/test_loader_batches.py)
+    cfg_read = load_model_config("cpu", ["train.max_steps=6", "train.val_every=3", "train.batch_size=4",
+                                         "train.val_max_patches=8", "train.cache=true", "train.num_workers=0"])
+    assert train(cfg_read, tiny_dataset, tiny_dataset, run, resume=True, progress=False)["steps"] == 6
     with pytest.raises(InputError, match="already holds a training run"):
         train(cfg, tiny_dataset, tiny_dataset, run, progress=False)
     # an interrupted run resumed equals an uninterrupted one

@@ -32,6 +32,8 @@ class TrainSection(StrictModel):
     val_max_patches: int = Field(2000, ge=1, description="validation patches per check")
     seed: int = Field(0, description="seed of initialisation and data order")
     num_workers: int = Field(0, ge=0, description="DataLoader worker processes")
+    cache: bool | Literal["auto"] = Field("auto", description="keep the decoded training corpus in memory "
+                                                              "(auto: when it takes <= 40 % of available memory)")
 
 
 class ModelConfig(StrictModel):

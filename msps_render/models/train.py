@@ -116,6 +116,17 @@ def build_model(cfg: ModelConfig, device: str) -> tuple[torch.nn.Module, torch.o
     return model, torch.optim.Adam(model.parameters(), lr=cfg.train.lr, betas=tuple(cfg.train.betas))
 
 
+# Settings that change how batches are read, never which: a run may resume with other values.
+_READING_ONLY = {"num_workers", "cache"}
+
+
+def _results_config(cfg: ModelConfig) -> dict:
+    """The model config without the reading-only settings (same batches for any value, tested)."""
+    d = cfg.model_dump()
+    d["train"] = {k: v for k, v in d["train"].items() if k not in _READING_ONLY}
+    return d
+
+
 def start_run(run: Run, resume: bool, init: str | Path | None) -> None:
     """Restore `last.pt` (`resume`), refuse to overwrite a run, or warm-start weights from `init`."""
     last = run.out / "last.pt"
@@ -123,7 +134,7 @@ def start_run(run: Run, resume: bool, init: str | Path | None) -> None:
         if not last.is_file():
             raise InputError(last, "nothing to resume (no last.pt)")
         _, rcfg, ck = load_checkpoint(last)
-        if rcfg.model_dump() != run.cfg.model_dump():
+        if _results_config(rcfg) != _results_config(run.cfg):
             raise InputError(last, "checkpoint was trained with a different model config")
         if ck.get("data_hash") != run.dhash:
             raise InputError(last, "checkpoint was trained on a different dataset")
@@ -171,11 +182,16 @@ def record(run: Run, log, val_mae: float, losses: list[float], parts: dict, lr: 
     run.checkpoint("last.pt", val_mae)
 
 
-def open_data(data, val, verify: bool):
-    """(training, validation) PatchDatasets; `InputError` if either has no patches."""
-    from msps_render.data import PatchDataset
+def open_data(data, val, verify: bool, cache: bool | str = False):
+    """(training, validation) PatchDatasets; `InputError` if either has no patches.
+
+    `cache` (`train.cache`): keep the training corpus decoded in memory -- True, False, or
+    "auto" (when it takes at most 40 % of the available memory, `data.should_cache`)."""
+    from msps_render.data import PatchDataset, available_memory_bytes, should_cache
 
     train_ds = PatchDataset(data, verify=verify)
+    if cache is True or (cache == "auto" and should_cache(train_ds.decoded_bytes(), available_memory_bytes())):
+        train_ds = PatchDataset(data, cache=True)
     val_ds = PatchDataset(val, verify=verify)
     if len(train_ds) == 0 or len(val_ds) == 0:
         raise InputError(train_ds.root if len(train_ds) == 0 else val, "dataset has no patches")
@@ -186,7 +202,7 @@ def fit(run: Run, loader, val_loader, log, bar, device: str) -> None:
     """Epochs of `train_step` until the step or time budget; validate + `record` every `val_every`."""
     t_cfg, state = run.cfg.train, run.state
     run.model.train()
-    done = False
+    done = run.should_stop()  # a finished run resumed does no extra step
     window_t, window_n, run_loss = time.perf_counter(), 0, []
     while not done and state["epoch"] < t_cfg.epochs:
         loader.set_epoch(state["epoch"])
@@ -227,7 +243,7 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
     from msps_render.data import make_loader
 
     out, t_cfg = Path(out), cfg.train
-    train_ds, val_ds = open_data(data, val, verify)
+    train_ds, val_ds = open_data(data, val, verify, t_cfg.cache)
     model, opt = build_model(cfg, device)
     run = Run(cfg, out, model, opt, data_hash(data), train_lights=training_lights(data))
     start_run(run, resume, init)
