@@ -4,6 +4,8 @@
 #
 #   bash benchmarks/bench_corpus.sh OLD_REF NEW_REF OUT [WORKERS]
 #   e.g. bash benchmarks/bench_corpus.sh c72a7ec HEAD /tmp/corpus 2
+#   FRESH_JIT=1 ...   each render starts with an empty drjit kernel disk cache (~/.drjit), as on a
+#                     first run; by default the cache is whatever earlier runs left (warm)
 #
 # Each ref is checked out into OUT/src-<ref> (git worktree) and run with this checkout's venv
 # (`PYTHONPATH` = that tree, so presets, brdf/ and the code are the ref's own).  The baked
@@ -15,7 +17,7 @@ root=$(cd "$(dirname "$0")/.." && pwd)
 py="$root/.venv/bin/python"
 mkdir -p "$out"
 export MSPS_CACHE_DIR="$out/cache" OMP_WAIT_POLICY=PASSIVE
-: > "$out/results.tsv"
+: >> "$out/results.tsv"
 
 src() {  # a worktree of ref $1 under OUT (reused when present)
   local d="$out/src-$(git -C "$root" rev-parse --short "$1")"
@@ -36,10 +38,13 @@ for s in "$oldsrc" "$newsrc"; do
   for preset in paper-train paper-val; do
     d="$out/$ref/$preset"
     rm -rf "$d"
+    home=$HOME
+    [ "${FRESH_JIT:-0}" = 1 ] && home=$(mktemp -d)
     t0=$(date +%s.%N)
-    PYTHONPATH="$s" "$py" -m msps_render.cli render "$preset" --out "$d" --workers "$workers" > "$out/$ref-$preset.log" 2>&1
+    HOME="$home" PYTHONPATH="$s" "$py" -m msps_render.cli render "$preset" --out "$d" --workers "$workers" > "$out/$ref-$preset.log" 2>&1
     t1=$(date +%s.%N)
     n=$("$py" -c "import json,sys; print(json.load(open(sys.argv[1]))['n_patches'])" "$d/dataset.json")
-    printf '%s\t%s\t%.1f\t%s\n' "$ref" "$preset" "$(echo "$t1 - $t0" | bc)" "$n" | tee -a "$out/results.tsv"
+    printf '%s\t%s\t%.1f\t%s\t%s\n' "$ref" "$preset" "$(echo "$t1 - $t0" | bc)" "$n" \
+        "$([ "${FRESH_JIT:-0}" = 1 ] && echo fresh-jit-cache || echo warm-jit-cache)" | tee -a "$out/results.tsv"
   done
 done
