@@ -15,3 +15,17 @@ def analytic_sphere_normals(width: int, height: int, extent: float, radius: floa
     n = np.stack([X / radius, Y / radius, Z], -1)
     n[~mask] = 0
     return n, mask
+
+
+def corrupt_patch_chunk(shard, chunk: int) -> None:
+    """Overwrite 16 bytes in the middle of compressed chunk `chunk` of a shard's patch images:
+    the file still opens, and reading that chunk fails (what a bad disk block looks like)."""
+    import h5py
+
+    from msps_render.dataset import schema as K
+
+    with h5py.File(shard, "r") as h:
+        info = h[K.PATCH_IMAGE].id.get_chunk_info(chunk)
+    with open(shard, "r+b") as f:
+        f.seek(info.byte_offset + info.size // 2)
+        f.write(bytes(16))

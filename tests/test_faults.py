@@ -528,15 +528,12 @@ def test_random_bytes_checkpoint_message_ends_on_a_word(tmp_path):
 def test_corrupted_chunk_through_patchdataset_names_the_file(tmp_path, reference):
     pytest.importorskip("torch")
     from msps_render.data import PatchDataset
+    from msps_render.testing import corrupt_patch_chunk
 
     out = tmp_path / "ds"
     shutil.copytree(reference[1], out)
     shard = out / "shards" / "shard-00001.h5"
-    with h5py.File(shard, "r") as h:
-        info = h[K.PATCH_IMAGE].id.get_chunk_info(0)
-    with open(shard, "r+b") as f:
-        f.seek(info.byte_offset + info.size // 2)
-        f.write(bytes(16))
+    corrupt_patch_chunk(shard, 0)
     ds = PatchDataset(out)
     idx = int(ds.offsets[1])
     with pytest.raises(InputError, match=r"shard-00001\.h5: unreadable shard"):

@@ -236,22 +236,16 @@ def test_cache_and_mixed_dtype_roots_give_the_same_batches(dataset_dir, tmp_path
 
 @pytest.mark.parametrize("workers", [0, 2])
 def test_a_corrupted_shard_is_one_line_naming_it(dataset_dir, tmp_path, workers):
-    import h5py
+    import shutil
 
     from msps_render.data import PatchDataset, make_loader
-    from msps_render.dataset import schema as K
     from msps_render.errors import InputError
-
-    import shutil
+    from msps_render.testing import corrupt_patch_chunk
 
     out = tmp_path / "ds"
     shutil.copytree(dataset_dir, out)
     shard = out / "shards" / "shard-00005.h5"
-    with h5py.File(shard, "r") as h:
-        info = h[K.PATCH_IMAGE].id.get_chunk_info(1)
-    with open(shard, "r+b") as f:
-        f.seek(info.byte_offset + info.size // 2)
-        f.write(bytes(16))
+    corrupt_patch_chunk(shard, 1)
     with pytest.raises(InputError, match=r"shard-00005\.h5: unreadable shard") as e:
         list(make_loader(PatchDataset(out), 16, num_workers=workers))
     assert "\n" not in str(e.value)

@@ -28,6 +28,7 @@ import numpy as np
 
 from msps_render.brdf import merl
 from msps_render.brdf.library import resolve_table
+from msps_render.render.variant import register_plugin
 
 log = logging.getLogger(__name__)
 
@@ -272,16 +273,7 @@ def _plugin_class(variant: str):
 
 def register(variant: str | None = None) -> str:
     """Register the `merl` plugin for the current (or given, must be current) variant; idempotent."""
-    import mitsuba as mi
-
-    v = variant or mi.variant()
-    if v is None:
-        raise RuntimeError("set a Mitsuba variant before registering the merl plugin")
-    if v not in _REGISTERED:
-        cls = _plugin_class(v)
-        mi.register_bsdf(PLUGIN_NAME, lambda props: cls(props))
-        _REGISTERED.add(v)
-    return v
+    return register_plugin("bsdf", PLUGIN_NAME, _plugin_class, _REGISTERED, variant)
 
 
 _REGISTERED: set[str] = set()

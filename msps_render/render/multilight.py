@@ -33,6 +33,8 @@ from typing import Sequence
 
 import numpy as np
 
+from msps_render.render.variant import register_plugin
+
 PLUGIN_NAME = "msps_multilight"
 RR_DEPTH = 5  # Mitsuba's default for `path`
 _CHANNELS = ("R", "G", "B")
@@ -323,16 +325,7 @@ def _plugin_class(variant: str):
 
 def register(variant: str | None = None) -> str:
     """Register `msps_multilight` for the current (or given, must be current) variant; idempotent."""
-    import mitsuba as mi
-
-    v = variant or mi.variant()
-    if v is None:
-        raise RuntimeError(f"set a Mitsuba variant before registering {PLUGIN_NAME}")
-    if v not in _REGISTERED:
-        cls = _plugin_class(v)
-        mi.register_integrator(PLUGIN_NAME, lambda props: cls(props))
-        _REGISTERED.add(v)
-    return v
+    return register_plugin("integrator", PLUGIN_NAME, _plugin_class, _REGISTERED, variant)
 
 
 _REGISTERED: set[str] = set()

@@ -101,3 +101,21 @@ def activate(variant: str, threads: int | None = None):
     if threads:
         dr.set_thread_count(int(threads))
     return mi
+
+
+def register_plugin(kind: str, name: str, plugin_class, registered: set[str], variant: str | None = None) -> str:
+    """Register Python plugin `name` (`kind` 'bsdf' or 'integrator') for the current variant, once.
+
+    Why per variant: a Python plugin subclasses the variant's `mi.BSDF` / `mi.SamplingIntegrator`,
+    so `plugin_class(variant)` builds the class for it; `registered` is the caller's set of
+    variants done (given or current; a given one must be current)."""
+    import mitsuba as mi
+
+    v = variant or mi.variant()
+    if v is None:
+        raise RuntimeError(f"set a Mitsuba variant before registering the {name} plugin")
+    if v not in registered:
+        cls = plugin_class(v)
+        getattr(mi, f"register_{kind}")(name, lambda props: cls(props))
+        registered.add(v)
+    return v
