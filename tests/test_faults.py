@@ -45,6 +45,11 @@ max_depth = 2
 """
 
 
+# Shards in the runs the interrupt/kill tests stop midway: the tiny shards render in ~10-20 ms each
+# once kernels are reused, so the run must be long enough never to finish before the signal.
+LONG_RUN = 3000
+
+
 def tiny(tmp: Path, n_shards: int = 4, extra: str = "", name: str = "tiny.toml") -> Path:
     p = tmp / name
     p.write_text(TINY.format(n_shards=n_shards) + extra)
@@ -437,7 +442,7 @@ def _wait_for_shards(out: Path, n: int, proc: subprocess.Popen, timeout: float =
 
 @pytest.mark.parametrize("sig,workers", [(signal.SIGINT, 2), (signal.SIGTERM, 2), (signal.SIGINT, 1)])
 def test_interrupt_stops_fast_and_keeps_finished_shards(sig, workers, tmp_path):
-    cfg = tiny(tmp_path, 200)
+    cfg = tiny(tmp_path, LONG_RUN)
     out = tmp_path / "ds"
     proc = _start_render(cfg, out, workers)
     _wait_for_shards(out, 2, proc)
@@ -450,7 +455,7 @@ def test_interrupt_stops_fast_and_keeps_finished_shards(sig, workers, tmp_path):
     assert stopped < 5, stopped
     m = read_manifest(out)
     n = len(m["shards"])
-    assert err.strip().splitlines()[-1] == f"interrupted: {n} of 200 shards done; rerun with --resume"
+    assert err.strip().splitlines()[-1] == f"interrupted: {n} of {LONG_RUN} shards done; rerun with --resume"
     files = sorted(p.name for p in (out / "shards").iterdir())
     assert files == sorted(m["shards"])  # every finished shard recorded, no temporaries, nothing else
     assert not list(out.glob(".*.tmp"))
@@ -461,7 +466,7 @@ def test_interrupt_stops_fast_and_keeps_finished_shards(sig, workers, tmp_path):
 
 
 def test_sigkill_of_driver_leaves_no_worker(tmp_path):
-    cfg = tiny(tmp_path, 200)
+    cfg = tiny(tmp_path, LONG_RUN)
     out = tmp_path / "ds"
     proc = _start_render(cfg, out, 2)
     _wait_for_shards(out, 1, proc)
@@ -591,7 +596,7 @@ def test_chaos_kills_and_interrupts_then_resume_equals_uninterrupted(tmp_path):
 
 def test_worker_killed_mid_run_is_one_line_and_keeps_finished_shards(tmp_path):
     """A worker dying under the driver (OOM killer, kill -9): exit 1 naming the shard, no hang, no temporaries."""
-    cfg = tiny(tmp_path, 200)
+    cfg = tiny(tmp_path, LONG_RUN)
     out = tmp_path / "ds"
     proc = _start_render(cfg, out, 2)
     _wait_for_shards(out, 1, proc)
