@@ -422,11 +422,18 @@ def _alive(pid: int) -> bool:
         return False
 
 
+def _default_sigint() -> None:
+    """In the child before exec: SIGINT back to its default.  A test run started in the background
+    by a non-interactive shell inherits SIGINT ignored, and Python then never raises
+    KeyboardInterrupt -- the render would (rightly) ignore the Ctrl-C these tests send."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_render(cfg: Path, out: Path, workers: int, *extra) -> subprocess.Popen:
     env = dict(os.environ, MSPS_THREADS="1")
     return subprocess.Popen([sys.executable, "-m", "msps_render.cli", "render", str(cfg), "--out", str(out),
                              "--workers", str(workers), "--quiet", *extra], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, env=env)
+                            stderr=subprocess.PIPE, text=True, env=env, preexec_fn=_default_sigint)
 
 
 def _wait_for_shards(out: Path, n: int, proc: subprocess.Popen, timeout: float = 180) -> None:
