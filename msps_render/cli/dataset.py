@@ -22,7 +22,7 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
                force: bool = typer.Option(False, help="replace a dataset made with another config"),
                set_: List[str] = typer.Option([], "--set", help="override, e.g. lights.slant_deg=25"),
                variant: Optional[str] = typer.Option(None, help="Mitsuba variant"),
-               threads: Optional[int] = typer.Option(None, help="render threads per worker"),
+               threads: Optional[int] = typer.Option(None, help="render threads per worker (default: cores / workers)"),
                recycle_after: int = typer.Option(0, help="replace a local worker after N shards (0: never)"),
                quiet: bool = typer.Option(False, help="no progress bar")):
     """Render a dataset of HDF5 patch shards."""

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import threading
 import time
@@ -62,6 +63,17 @@ def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, schedu
             remove_if_empty(out)
 
 
+def worker_threads(threads: int | None, workers: int) -> int | None:
+    """drjit threads per local worker: as given, else `MSPS_THREADS`, else cores / workers.
+
+    Why: with drjit's default (all cores) in every worker, 2 workers run 4 threads on 2 cores;
+    measured on the full paper-train corpus, one thread per worker renders it in 254 s instead of
+    311 s (docs/benchmarks.md "Full paper corpus").  None = drjit's default (one worker)."""
+    if threads or os.environ.get("MSPS_THREADS") or workers <= 1:
+        return threads
+    return max(1, (os.cpu_count() or 1) // workers)
+
+
 def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, force, threads, progress,
                    recycle_after) -> dict:
     h = config_hash(cfg)
@@ -97,7 +109,7 @@ def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, f
         write_manifest(out, manifest)
         bar.update(info["n_patches"])
 
-    ws = WorkerSettings(out_dir=str(out), variant=variant, threads=threads)
+    ws = WorkerSettings(out_dir=str(out), variant=variant, threads=worker_threads(threads, workers))
     t0 = time.perf_counter()
     main_thread = threading.current_thread() is threading.main_thread()
     old_term = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
