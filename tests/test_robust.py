@@ -220,6 +220,20 @@ def test_sensor_is_a_top_level_table_and_old_presets_still_read():
         DatasetConfig.model_validate({"sensor": {"bits": 8}, "scene": {"sensor": {"bits": 12}}})
 
 
+def test_old_scene_sensor_preset_file_reads_and_both_is_one_line(tmp_path):
+    """The same through a preset file (the path users take, with its unknown-key check)."""
+    from msps_render.errors import InputError
+    from msps_render.pipeline.config import load_config
+
+    old = tmp_path / "old.toml"
+    old.write_text("[dataset]\nn_shards = 1\n[scene.sensor]\nbits = 8\n")
+    assert load_config(old).sensor.bits == 8
+    both = tmp_path / "both.toml"
+    both.write_text("[dataset]\nn_shards = 1\n[sensor]\nbits = 8\n[scene.sensor]\nbits = 12\n")
+    with pytest.raises(InputError, match=r"both\.toml.*not both"):
+        load_config(both)
+
+
 def test_frame_crosstalk_fallback_has_the_sampler_scale():
     """A hand-made spec without a crosstalk matrix reads back the lights' RGB with columns summing
     to 1 -- exactly the sampler's M (its lights have RGB = irradiance * M[:, k])."""

@@ -64,13 +64,7 @@ class DatasetConfig(StrictModel):
     @model_validator(mode="before")
     @classmethod
     def _legacy_scene_sensor(cls, data: Any) -> Any:
-        """Presets before 0.2 spelled the sensor `[scene.sensor]`; read it as `[sensor]`."""
-        if isinstance(data, dict) and isinstance(data.get("scene"), dict) and "sensor" in data["scene"]:
-            if data.get("sensor") is not None:
-                raise ValueError("sensor: give either [sensor] or the old [scene.sensor], not both")
-            data = {**data, "scene": {k: v for k, v in data["scene"].items() if k != "sensor"},
-                    "sensor": data["scene"]["sensor"]}
-        return data
+        return legacy_scene_sensor(data)
 
     @model_validator(mode="after")
     def _check(self) -> "DatasetConfig":
@@ -89,6 +83,16 @@ class DatasetConfig(StrictModel):
             return [("", None)]
         leaf = self.sweep.key.split(".")[-1]
         return [(f"{leaf}={v}", v) for v in self.sweep.values]
+
+
+def legacy_scene_sensor(data: Any) -> Any:
+    """Presets before 0.2 spelled the sensor `[scene.sensor]`; read it as `[sensor]`."""
+    if isinstance(data, dict) and isinstance(data.get("scene"), dict) and "sensor" in data["scene"]:
+        if data.get("sensor") is not None:
+            raise ValueError("sensor: give either [sensor] or the old [scene.sensor], not both")
+        data = {**data, "scene": {k: v for k, v in data["scene"].items() if k != "sensor"},
+                "sensor": data["scene"]["sensor"]}
+    return data
 
 
 def condition_config(cfg: DatasetConfig, value) -> DatasetConfig:
@@ -129,6 +133,10 @@ def load_config(path_or_name: str | Path, overrides: list[str] | tuple[str, ...]
 
 
 def validate_config(data: dict, source: str = "<config>") -> DatasetConfig:
+    try:  # before the unknown-key check, which does not know the old spelling
+        data = legacy_scene_sensor(data)
+    except ValueError as e:
+        raise InputError(source, str(e)) from None
     return validate(DatasetConfig, data, source)
 
 
