@@ -112,7 +112,14 @@ class PatchDataset(Dataset):
         self._scratch: dict[str, np.ndarray] = {}
         self._pid = None
         self._meta = [self._read_meta(p) for p, _, _ in self.shards]
-        self._cache = [self._read_all(p) for p, _, _ in self.shards] if cache else None
+        self._cache = None
+        if cache:
+            self.keep_decoded()
+
+    def keep_decoded(self) -> None:
+        """Decode every shard once and keep it in memory (what `cache=True` does at construction)."""
+        if self._cache is None:
+            self._cache = [self._read_all(p) for p, _, _ in self.shards]
 
     def decoded_bytes(self) -> int:
         """Bytes the decoded patches take in memory (what `cache=True` holds), from the layouts alone."""

@@ -191,7 +191,7 @@ def open_data(data, val, verify: bool, cache: bool | str = False):
 
     train_ds = PatchDataset(data, verify=verify)
     if cache is True or (cache == "auto" and should_cache(train_ds.decoded_bytes(), available_memory_bytes())):
-        train_ds = PatchDataset(data, cache=True)
+        train_ds.keep_decoded()
     val_ds = PatchDataset(val, verify=verify)
     if len(train_ds) == 0 or len(val_ds) == 0:
         raise InputError(train_ds.root if len(train_ds) == 0 else val, "dataset has no patches")
