@@ -9,15 +9,13 @@ from __future__ import annotations
 import numpy as np
 
 from msps_render.render.multilight import read_emitter_images
-from msps_render.render.scene_dict import ENV_KEY, light_key
+from msps_render.render.scene_dict import ENV_KEY, emitter_ids
 from msps_render.scene.spec import SceneSpec
 
 
 def _emitter_names(params, spec: SceneSpec) -> list[str]:
     """Emitter ids in render order (lights, then environment), checked against `mi.traverse`."""
-    names = [light_key(k) for k in range(len(spec.lights))]
-    if spec.environment is not None:
-        names.append(ENV_KEY)
+    names = emitter_ids(spec)
     missing = [n for n in names if f"{n}.sampling_weight" not in params]
     if missing:
         raise RuntimeError(f"emitters not found in the loaded scene: {missing}")
