@@ -44,7 +44,7 @@ def _sensor(mi, spec: SceneSpec) -> dict:
     look = T().look_at(origin=[0.0, 0.0, c.distance], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0])
     film = {"type": "hdrfilm", "width": c.width, "height": c.height, "rfilter": {"type": "box"},
             "pixel_format": "rgb", "component_format": "float32"}
-    sampler = {"type": "independent", "sample_count": spec.integrator.spp, "seed": spec.integrator.seed}
+    sampler = {"type": spec.integrator.sampler, "sample_count": spec.integrator.spp, "seed": spec.integrator.seed}
     if c.kind == "orthographic":
         return {"type": "orthographic", "to_world": look @ T().scale([c.extent, c.extent, 1.0]),
                 "near_clip": 0.01, "far_clip": 2 * c.distance + 10, "film": film, "sampler": sampler}

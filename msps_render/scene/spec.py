@@ -150,6 +150,24 @@ class SplitSpec(FrozenModel):
 
 # ------------------------------------------------------------------ integrator
 LightsMode = Literal["one-pass", "per-light"]
+SamplerKind = Literal["independent", "multijitter", "stratified", "ldsampler", "orthogonal"]
+
+
+def _is_prime(n: int) -> bool:
+    return n >= 2 and all(n % d for d in range(2, math.isqrt(n) + 1))
+
+
+def sampler_spp_problem(sampler: str, spp: int) -> str | None:
+    """Why Mitsuba would silently change `spp` for this sampler (None if it keeps it): an
+    error here instead, so a preset renders the sample count it says."""
+    root = math.isqrt(spp)
+    if sampler == "stratified" and root * root != spp:
+        return f"sampler 'stratified' needs a square spp (4, 9, 16, 25, ...), got {spp}"
+    if sampler == "ldsampler" and (spp & (spp - 1) or root * root != spp):
+        return f"sampler 'ldsampler' needs a power of 4 as spp (4, 16, 64, ...), got {spp}"
+    if sampler == "orthogonal" and not (root * root == spp and _is_prime(root)):
+        return f"sampler 'orthogonal' needs spp = p^2 with p prime (4, 9, 25, 49, ...), got {spp}"
+    return None
 
 
 class IntegratorSpec(FrozenModel):
@@ -160,6 +178,16 @@ class IntegratorSpec(FrozenModel):
     lights: LightsMode = Field("one-pass", description="one-pass: one render samples every light at every "
                                                        "vertex (each light in its own channel); per-light: one "
                                                        "Mitsuba render per light (the reference, slower)")
+    sampler: SamplerKind = Field("independent", description="Mitsuba sampler. 'independent': plain Monte Carlo; "
+                                 "'multijitter' (stratified in every dimension) reaches independent's noise at "
+                                 "~1/4 of the spp on darkroom scenes (docs/benchmarks.md, bench_sampler.py)")
+
+    @model_validator(mode="after")
+    def _spp_fits_sampler(self):
+        problem = sampler_spp_problem(self.sampler, self.spp)
+        if problem:
+            raise ValueError(problem)
+        return self
 
 
 # ---------------------------------------------------------------------- scene
