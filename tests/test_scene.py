@@ -117,3 +117,24 @@ def test_primitives_build_outward_and_normalised(name):
 def test_unknown_primitive_is_rejected():
     with pytest.raises(Exception, match="unknown primitive 'donut'"):
         ShapeSpec(kind="primitive", name="donut")
+
+
+def test_real_sh_basis_equals_scipy_spherical_harmonics():
+    """The recurrence in `geometry.real_sh_basis` is scipy's complex Y_lm made real (Condon-Shortley
+    phase included), to float rounding, including the poles and up to l = 8."""
+    from scipy.special import sph_harm_y
+
+    from msps_render.scene.geometry import real_sh_basis
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(2000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d[:3] = [[0, 0, 1], [0, 0, -1], [1, 0, 0]]
+    theta, phi = np.arccos(np.clip(d[:, 2], -1, 1)), np.arctan2(d[:, 1], d[:, 0])
+    for lmax, lmin in ((1, 1), (4, 1), (8, 0)):
+        cols = []
+        for l in range(lmin, lmax + 1):
+            for m in range(-l, l + 1):
+                Y = sph_harm_y(l, abs(m), theta, phi)
+                cols.append(Y.real if m == 0 else np.sqrt(2) * (-1) ** m * (Y.imag if m < 0 else Y.real))
+        np.testing.assert_allclose(real_sh_basis(d, lmax, lmin), np.stack(cols, 1), rtol=0, atol=1e-12)

@@ -11,6 +11,7 @@ table differs from the network only by MERL's own binning.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 from dataclasses import dataclass
@@ -106,14 +107,24 @@ def builtin_names() -> list[str]:
     return sorted(p.stem for p in d.glob("*.h5")) if d.is_dir() else []
 
 
+@functools.lru_cache(maxsize=256)
+def _digest(path: str, mtime_ns: int, size: int) -> str:
+    """The weights' digest, read once per file version (every frame asks for its tables' paths)."""
+    return read_weights(path).digest
+
+
 def baked_table(weights: str | os.PathLike, directory: str | os.PathLike | None = None) -> Path:
     """Path of the MERL table baked from `weights`, baking it once (atomic write) if absent."""
-    w = read_weights(weights)
+    p = Path(weights)
+    if not p.is_file():
+        read_weights(p)  # raises the InputError naming the file
+    st = p.stat()
+    digest = _digest(str(p), st.st_mtime_ns, st.st_size)
     d = Path(directory) if directory is not None else cache_dir()
-    path = d / f"nbrdf-{Path(weights).stem}-{w.digest}-v{BAKE_VERSION}.binary"
+    path = d / f"nbrdf-{p.stem}-{digest}-v{BAKE_VERSION}.binary"
     if path.is_file() and path.stat().st_size == merl.FILE_BYTES:
         return path
-    return merl.write_merl(path, make_table(w))
+    return merl.write_merl(path, make_table(read_weights(p)))
 
 
 def rusinkiewicz_dirs(theta_h: float, theta_d: float, phi_d: float) -> tuple[np.ndarray, np.ndarray]:

@@ -52,15 +52,31 @@ def measured_pool(cat: Catalogue, measured: str = "auto", merl_dir: str | os.Pat
     if measured == "generated":
         return [_measured_spec(e, None) for e in cat.by_source("generated")]
     dirs = merl_search_dirs(merl_dir)
+    # one directory listing per folder instead of a stat per catalogue entry and folder: the
+    # sampler builds this pool for every frame (~500 stats, 15 ms of a ~200 ms frame)
+    listed = {d: _file_names(d) for d in dirs}
+    fits = set(nbrdf.builtin_names()) if measured in ("auto", "nbrdf") else set()
     pool = []
     for e in cat.by_source("merl"):
-        real = find_merl(e.target, dirs) if measured in ("auto", "merl") else None
+        real = None
+        if measured in ("auto", "merl"):
+            real = (next(((d / e.target).resolve() for d in dirs if e.target in listed[d]), None)
+                    if "/" not in e.target and os.sep not in e.target else find_merl(e.target, dirs))
         if real is not None:
             pool.append(_measured_spec(e, real))
-        elif measured in ("auto", "nbrdf") and nbrdf.weights_path(Path(e.target).stem) is not None:
+        elif Path(e.target).stem in fits:
             stem = Path(e.target).stem
             pool.append(MaterialSpec(name=f"nbrdf:{e.name}", kind=MEASURED_KIND, params={"table": f"nbrdf:{stem}"}))
     return pool
+
+
+def _file_names(d: Path) -> frozenset[str]:
+    """Names of the regular files in `d` (none when it is not a readable folder)."""
+    try:
+        with os.scandir(d) as it:
+            return frozenset(e.name for e in it if e.is_file())
+    except OSError:
+        return frozenset()
 
 
 def _measured_spec(e: Entry, path: Path | None) -> MaterialSpec:
