@@ -26,10 +26,17 @@ src() {  # a worktree of ref $1 under OUT (reused when present)
 }
 
 oldsrc=$(src "$old"); newsrc=$(src "$new")
+# Every python runs with its cwd in the tree: `python -m` puts the cwd FIRST on sys.path, ahead
+# of PYTHONPATH, so run from another checkout it would import that checkout's msps_render (and
+# so would the spawned workers).  Checked here before anything is timed.
+for s in "$oldsrc" "$newsrc"; do
+  got=$(cd "$s" && PYTHONPATH="$s" "$py" -c 'import msps_render; print(msps_render.__file__)')
+  case "$got" in "$s"/*) ;; *) echo "bench_corpus: $s imports $got, not its own code" >&2; exit 1;; esac
+done
 # warm the baked-table cache (and the import caches) with a 1-shard render of each
 for s in "$oldsrc" "$newsrc"; do
-  PYTHONPATH="$s" "$py" -m msps_render.cli render paper-train --out "$out/warm" --force \
-      --set dataset.n_shards=1 --workers 1 > /dev/null
+  (cd "$s" && PYTHONPATH="$s" "$py" -m msps_render.cli render paper-train --out "$out/warm" --force \
+      --set dataset.n_shards=1 --workers 1 > /dev/null)
 done
 rm -rf "$out/warm"
 
@@ -41,7 +48,8 @@ for s in "$oldsrc" "$newsrc"; do
     home=$HOME
     [ "${FRESH_JIT:-0}" = 1 ] && home=$(mktemp -d)
     t0=$(date +%s.%N)
-    HOME="$home" PYTHONPATH="$s" "$py" -m msps_render.cli render "$preset" --out "$d" --workers "$workers" > "$out/$ref-$preset.log" 2>&1
+    (cd "$s" && HOME="$home" PYTHONPATH="$s" "$py" -m msps_render.cli render "$preset" --out "$d" \
+        --workers "$workers" > "$out/$ref-$preset.log" 2>&1)
     t1=$(date +%s.%N)
     n=$("$py" -c "import json,sys; print(json.load(open(sys.argv[1]))['n_patches'])" "$d/dataset.json")
     printf '%s\t%s\t%.1f\t%s\t%s\n' "$ref" "$preset" "$(echo "$t1 - $t0" | bc)" "$n" \
