@@ -121,6 +121,17 @@ class PatchDataset(Dataset):
         if self._cache is None:
             self._cache = [self._read_all(p) for p, _, _ in self.shards]
 
+    @property
+    def is_cached(self) -> bool:
+        """Is every shard kept decoded in memory (`cache=True` / `keep_decoded`)?"""
+        return self._cache is not None
+
+    def cached_views(self, s: int) -> dict[str, np.ndarray]:
+        """Shard `s` from the cache as channels-first views (the layout `read_shard_into` writes)."""
+        c = self._cache[s]
+        return {"image": c["image"].transpose(0, 3, 1, 2), "normal": c["normal"].transpose(0, 3, 1, 2),
+                "mask": c["mask"][:, None]}
+
     def decoded_bytes(self) -> int:
         """Bytes the decoded patches take in memory (what `cache=True` holds), from the layouts alone."""
         return int(sum(int(np.prod(shape)) * np.dtype(dtype).itemsize
@@ -414,6 +425,12 @@ class ShardLoader:
                 if s not in last_use:
                     order.append(s)
                 last_use[s] = b
+        if ds.is_cached:  # the decoded corpus is in memory: batches gather straight from it, no slots
+            for b, idx in enumerate(batches):
+                if run != self._run:
+                    raise RuntimeError("this ShardLoader iteration was superseded by a newer one")
+                yield _assemble(idx, runs[b], {s: ds.cached_views(s) for s, _, _ in runs[b]}, ds._meta, offsets)
+            return
         stream = self._decoded(order)
         live: dict[int, dict[str, np.ndarray]] = {}
         slot_of: dict[int, int] = {}
@@ -433,14 +450,17 @@ class ShardLoader:
 
 
 def make_loader(ds: PatchDataset, batch_size: int, shuffle: bool = True, num_workers: int = 0, seed: int = 0,
-                drop_last: bool = False) -> ShardLoader:
-    """The fast way to iterate a PatchDataset: `ShardBatchSampler` batches cut from whole decoded shards."""
-    sampler = ShardBatchSampler(ds, batch_size, shuffle=shuffle, seed=seed, drop_last=drop_last)
+                drop_last: bool = False, window: int | None = 4) -> ShardLoader:
+    """The fast way to iterate a PatchDataset: `ShardBatchSampler` batches cut from whole decoded shards.
+    `window`: shards shuffled together (None: the whole corpus, i.i.d. batches)."""
+    sampler = ShardBatchSampler(ds, batch_size, shuffle=shuffle, seed=seed, drop_last=drop_last,
+                                interleave=window)
     return ShardLoader(ds, sampler, num_workers=num_workers)
 
 
 class ShardBatchSampler(Sampler[list[int]]):
-    """Batches of exactly `batch_size` patches, drawn a few shards at a time.
+    """Batches of exactly `batch_size` patches, drawn a few shards at a time (or, with
+    `interleave=None`, i.i.d. from the whole corpus: meant for a corpus kept decoded in memory).
 
     Each epoch: shards in random order, taken in windows of `interleave`;
     within a window every shard's patches are shuffled, laid end to end and
@@ -456,12 +476,17 @@ class ShardBatchSampler(Sampler[list[int]]):
     """
 
     def __init__(self, dataset: PatchDataset, batch_size: int, shuffle: bool = True, seed: int = 0,
-                 drop_last: bool = False, interleave: int = 4):
+                 drop_last: bool = False, interleave: int | None = 4):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.ds, self.bs, self.shuffle, self.seed, self.drop_last = dataset, batch_size, shuffle, seed, drop_last
-        cap = max(1, getattr(dataset, "decoded_shards", interleave + 1) - 1)  # room for the carried shard
-        self.interleave = max(1, min(interleave, cap))
+        n = len(dataset.shards)
+        self.whole_corpus = interleave is None
+        if interleave is None:  # the whole corpus in one window: i.i.d. batches
+            self.interleave = max(1, n)
+        else:
+            cap = max(1, getattr(dataset, "decoded_shards", interleave + 1) - 1)  # room for the carried shard
+            self.interleave = max(1, min(interleave, cap))
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
@@ -471,6 +496,12 @@ class ShardBatchSampler(Sampler[list[int]]):
         """This epoch's batches as arrays of dataset indices (a pure function of seed and epoch)."""
         rng = np.random.default_rng([self.seed, self.epoch])
         n = len(self.ds.shards)
+        if self.shuffle and self.whole_corpus:  # i.i.d.: any patch next to any other
+            flat = rng.permutation(int(self.ds.offsets[-1])).astype(np.int64)
+            batches = [flat[a:a + self.bs] for a in range(0, len(flat), self.bs)]
+            if batches and self.drop_last and len(batches[-1]) < self.bs:
+                batches.pop()
+            return batches
         order = rng.permutation(n) if self.shuffle else np.arange(n)
         batches, carry = [], np.zeros(0, np.int64)
         for w in range(0, n, self.interleave):

@@ -234,6 +234,32 @@ def test_cache_and_mixed_dtype_roots_give_the_same_batches(dataset_dir, tmp_path
             assert torch.equal(x["image"][:, 0, 0, 0].floor().long(), x["index"])
 
 
+def test_whole_corpus_window_gives_iid_batches(dataset_dir, tmp_path):
+    """`window=None` (`train.shuffle_window = 0`): one shuffle over every shard, so a batch mixes
+    shards (two corpora read as one are interleaved from the first batch on), every patch once,
+    the same batches read from the cache or decoded, and windows of 4 keep batches within ~1-2
+    shards (what made multi-corpus training swing between corpora)."""
+    import torch
+
+    from msps_render.data import PatchDataset, make_loader
+
+    extra = write_dataset(tmp_path / "b", [40, 40, 40], seed=2, start=sum(SIZES))
+    plain, cached = PatchDataset([dataset_dir, extra]), PatchDataset([dataset_dir, extra], cache=True)
+    n_a = len(PatchDataset(dataset_dir))
+    a = list(make_loader(plain, 16, seed=3, window=None))
+    b = list(make_loader(cached, 16, seed=3, window=None))
+    assert len(a) == len(b) == -(-len(plain) // 16)
+    for x, y in zip(a, b):
+        assert all(torch.equal(x[k], y[k]) for k in x)
+    idx = torch.cat([x["index"] for x in a])
+    assert sorted(idx.tolist()) == list(range(len(plain)))
+    shards_per_batch = [len(set(x["shard"].tolist())) for x in a[:-1]]
+    both_corpora = [bool((x["index"] < n_a).any() and (x["index"] >= n_a).any()) for x in a[:-1]]
+    windowed = [len(set(x["shard"].tolist())) for x in list(make_loader(plain, 16, seed=3))[:-1]]
+    assert np.mean(shards_per_batch) > 2 * np.mean(windowed), (shards_per_batch, windowed)
+    assert np.mean(both_corpora) > 0.5
+
+
 @pytest.mark.parametrize("workers", [0, 2])
 def test_a_corrupted_shard_is_one_line_naming_it(dataset_dir, tmp_path, workers):
     import shutil

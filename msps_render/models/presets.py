@@ -34,6 +34,12 @@ class TrainSection(StrictModel):
     num_workers: int = Field(0, ge=0, description="DataLoader worker processes")
     cache: bool | Literal["auto"] = Field("auto", description="keep the decoded training corpus in memory "
                                                               "(auto: when it takes <= 40 % of available memory)")
+    shuffle_window: int = Field(4, ge=0, description="shards whose patches are shuffled together into batches; "
+                                                     "0 = the whole corpus (i.i.d. batches; every shard decoded at "
+                                                     "once, so meant with the cache). Small windows feed ~100 "
+                                                     "consecutive batches from 4 shards: with several corpora "
+                                                     "(e.g. a grey supplement) the weights and BatchNorm statistics "
+                                                     "swing between them")
 
 
 class ModelConfig(StrictModel):

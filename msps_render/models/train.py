@@ -250,7 +250,7 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=1))
     loader = make_loader(train_ds, t_cfg.batch_size, shuffle=True, seed=t_cfg.seed, drop_last=True,
-                         num_workers=t_cfg.num_workers)
+                         num_workers=t_cfg.num_workers, window=t_cfg.shuffle_window or None)
     val_loader = make_loader(val_ds, 64, shuffle=True, seed=1234)
     with open(out / "metrics.jsonl", "a") as log:
         run.n_params = count_parameters(model)
