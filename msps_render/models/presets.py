@@ -35,11 +35,11 @@ class TrainSection(StrictModel):
     cache: bool | Literal["auto"] = Field("auto", description="keep the decoded training corpus in memory "
                                                               "(auto: when it takes <= 40 % of available memory)")
     shuffle_window: int = Field(4, ge=0, description="shards whose patches are shuffled together into batches; "
-                                                     "0 = the whole corpus (i.i.d. batches; every shard decoded at "
-                                                     "once, so meant with the cache). Small windows feed ~100 "
-                                                     "consecutive batches from 4 shards: with several corpora "
-                                                     "(e.g. a grey supplement) the weights and BatchNorm statistics "
-                                                     "swing between them")
+                                                     "0 = the whole corpus (i.i.d. batches, gathered from the "
+                                                     "decoded cache: meant with `cache`). With windows a batch "
+                                                     "holds 1-2 shards and ~100 batches in a row come from 4: "
+                                                     "with several corpora, validation swings between them "
+                                                     "(docs/reproducing.md, stage 4)")
 
 
 class ModelConfig(StrictModel):
