@@ -1,6 +1,7 @@
 """Steady state of one render worker: per-shard wall time over a long run (docs/benchmarks.md).
 
     MSPS_THREADS=1 .venv/bin/python benchmarks/bench_steady.py --shards 40 [--preset paper-train]
+        [--profile 15]   # cProfile the last 15 shards (functions by cumulative time)
 
 Renders the first N shards of a preset in THIS process through the pipeline's own
 `render_shard`, one after the other, and prints every 5 shards the last shard's wall time
@@ -24,6 +25,7 @@ def main() -> None:
     ap.add_argument("--shards", type=int, default=40)
     ap.add_argument("--preset", default="paper-train")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--profile", type=int, default=0, help="cProfile the last N shards, print the top functions")
     a = ap.parse_args()
 
     from msps_render.pipeline.config import load_config
@@ -42,7 +44,13 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="msps-steady-") as out:
         (Path(out) / "shards").mkdir()
         ws = WorkerSettings(out_dir=out, variant=variant, threads=a.threads)
+        prof = None
         for i, task in enumerate(plan(cfg)):
+            if a.profile and i == a.shards - a.profile:
+                import cProfile
+
+                prof = cProfile.Profile()
+                prof.enable()
             t0 = time.perf_counter()
             render_shard(task, ws, timer=timer) if timer is not None else render_shard(task, ws)
             dt = time.perf_counter() - t0
@@ -53,6 +61,11 @@ def main() -> None:
                     means = {k: float(np.mean([f.get(k, 0.0) for f in fr])) for k in sorted({k for f in fr for k in f})}
                     line += "; " + " ".join(f"{k}={v:.3f}" for k, v in means.items() if v > 0.004)
                 print(line, flush=True)
+        if prof is not None:
+            import pstats
+
+            prof.disable()
+            pstats.Stats(prof).sort_stats("cumulative").print_stats(40)
 
 
 if __name__ == "__main__":

@@ -130,13 +130,28 @@ def merl_search_dirs(merl_dir: str | os.PathLike | None = None) -> list[Path]:
     return dirs
 
 
-def find_merl(target: str, dirs: list[Path]) -> Path | None:
-    """First existing `<dir>/<target>` (target is the file name from `merl:<file>`)."""
+def find_merl(target: str, dirs: list[Path], listed: dict[Path, frozenset[str]] | None = None) -> Path | None:
+    """First existing `<dir>/<target>` (target is the file name from `merl:<file>`).
+
+    `listed` (from `list_files(dirs)`): the folders' file names, read once for many lookups --
+    the scene sampler resolves every catalogue entry for every frame (~500 `stat` calls)."""
+    plain = listed is not None and "/" not in target and os.sep not in target
     for d in dirs:
-        p = d / target
-        if p.is_file():
-            return p.resolve()
+        if (target in listed.get(d, ())) if plain else (d / target).is_file():
+            return (d / target).resolve()
     return None
+
+
+def list_files(dirs: list[Path]) -> dict[Path, frozenset[str]]:
+    """Names of the regular files in each folder (none when it is not a readable folder)."""
+    out = {}
+    for d in dirs:
+        try:
+            with os.scandir(d) as it:
+                out[d] = frozenset(e.name for e in it if e.is_file())
+        except OSError:
+            out[d] = frozenset()
+    return out
 
 
 def available_merl(cat: Catalogue, merl_dir: str | os.PathLike | None = None) -> list[tuple[Entry, Path]]:

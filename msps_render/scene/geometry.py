@@ -21,7 +21,7 @@ def real_sh_basis(dirs: np.ndarray, lmax: int, lmin: int = 1) -> np.ndarray:
     """Real spherical harmonics Y_lm(dirs) for lmin <= l <= lmax, shape (N, n_coeffs).
 
     Associated Legendre functions by the standard three-term recurrence (Condon-Shortley phase,
-    as scipy's `sph_harm_y`, which this equals to ~1e-15; tests/test_shapes.py): the part split
+    as scipy's `sph_harm_y`, which this equals to ~1e-15; tests/test_scene.py): the part split
     evaluates it on every face of every frame, where scipy's per-(l, m) calls took ~35 ms."""
     from math import factorial, pi, sqrt
 

@@ -19,7 +19,7 @@ import numpy as np
 from msps_render.brdf import nbrdf
 from msps_render.brdf.families import FAMILIES, MEASURED_KIND, unknown_family
 from msps_render.brdf.library import (HOLDOUT, MEASURED, Catalogue, Entry, available_merl, find_merl, held_out,
-                                      load_catalogue, merl_search_dirs)
+                                      list_files, load_catalogue, merl_search_dirs)
 from msps_render.errors import InputError
 from msps_render.scene.spec import MaterialSpec
 
@@ -52,31 +52,18 @@ def measured_pool(cat: Catalogue, measured: str = "auto", merl_dir: str | os.Pat
     if measured == "generated":
         return [_measured_spec(e, None) for e in cat.by_source("generated")]
     dirs = merl_search_dirs(merl_dir)
-    # one directory listing per folder instead of a stat per catalogue entry and folder: the
-    # sampler builds this pool for every frame (~500 stats, 15 ms of a ~200 ms frame)
-    listed = {d: _file_names(d) for d in dirs}
+    # one listing per folder, not a stat per entry and folder: this runs for every frame
+    listed = list_files(dirs)
     fits = set(nbrdf.builtin_names()) if measured in ("auto", "nbrdf") else set()
     pool = []
     for e in cat.by_source("merl"):
-        real = None
-        if measured in ("auto", "merl"):
-            real = (next(((d / e.target).resolve() for d in dirs if e.target in listed[d]), None)
-                    if "/" not in e.target and os.sep not in e.target else find_merl(e.target, dirs))
+        real = find_merl(e.target, dirs, listed) if measured in ("auto", "merl") else None
         if real is not None:
             pool.append(_measured_spec(e, real))
         elif Path(e.target).stem in fits:
             stem = Path(e.target).stem
             pool.append(MaterialSpec(name=f"nbrdf:{e.name}", kind=MEASURED_KIND, params={"table": f"nbrdf:{stem}"}))
     return pool
-
-
-def _file_names(d: Path) -> frozenset[str]:
-    """Names of the regular files in `d` (none when it is not a readable folder)."""
-    try:
-        with os.scandir(d) as it:
-            return frozenset(e.name for e in it if e.is_file())
-    except OSError:
-        return frozenset()
 
 
 def _measured_spec(e: Entry, path: Path | None) -> MaterialSpec:
