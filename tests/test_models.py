@@ -348,3 +348,24 @@ def test_warm_start_from_checkpoint(tiny_dataset, tmp_path):
     other = load_model_config("cpu", base + ["net.branch=4"])
     with pytest.raises(InputError, match="different network"):
         train(other, tiny_dataset, tiny_dataset, tmp_path / "c", progress=False, init=tmp_path / "a" / "last.pt")
+
+
+def test_freeze_bn_keeps_init_statistics_and_learns_weights(tiny_dataset, tmp_path):
+    """`train.freeze_bn`: a fine-tune keeps the --init model's BatchNorm statistics exactly (also across
+    validation, which switches the model to eval and back) while weights still learn; without it they move."""
+    from msps_render.models.train import load_checkpoint, train
+
+    base = ["train.max_steps=4", "train.val_every=2", "train.batch_size=4", "train.val_max_patches=8"]
+    train(load_model_config("cpu", base), tiny_dataset, tiny_dataset, tmp_path / "a", progress=False)
+    for freeze in (True, False):
+        out = tmp_path / f"ft-{freeze}"
+        train(load_model_config("cpu", base + [f"train.freeze_bn={str(freeze).lower()}"]), tiny_dataset,
+              tiny_dataset, out, progress=False, init=tmp_path / "a" / "last.pt")
+        a, _, _ = load_checkpoint(tmp_path / "a" / "last.pt")
+        b, _, _ = load_checkpoint(out / "last.pt")
+        sa, sb = a.state_dict(), b.state_dict()
+        stats = [k for k in sa if k.endswith(("running_mean", "running_var"))]
+        assert len(stats) > 20
+        same = [torch.equal(sa[k], sb[k]) for k in stats]
+        assert all(same) if freeze else not any(same)
+        assert not torch.allclose(sa["scn.enc0.0.weight"], sb["scn.enc0.0.weight"])  # weights learn either way

@@ -40,6 +40,9 @@ class TrainSection(StrictModel):
                                                      "holds 1-2 shards and ~100 batches in a row come from 4: "
                                                      "with several corpora, validation swings between them "
                                                      "(docs/reproducing.md, stage 4)")
+    freeze_bn: bool = Field(False, description="keep BatchNorm layers in inference mode while training: their "
+                                               "statistics stay those of the --init model and only weights "
+                                               "learn (fine-tuning on a new corpus mix; docs/reproducing.md)")
 
 
 class ModelConfig(StrictModel):

@@ -53,7 +53,7 @@ def _sha1(path: str | Path) -> str:
 @torch.no_grad()
 def validate(model, loader, max_patches: int) -> float:
     """Mean angular error (degrees) over object pixels of up to `max_patches` patches."""
-    was = model.training
+    was = {m: m.training for m in model.modules()}  # restored per module (frozen BatchNorm stays frozen)
     model.eval()
     err_sum, n_pix, seen = 0.0, 0.0, 0
     for b in loader:
@@ -64,7 +64,8 @@ def validate(model, loader, max_patches: int) -> float:
         seen += len(b["image"])
         if seen >= max_patches:
             break
-    model.train(was)
+    for m, mode in was.items():
+        m.train(mode)
     return err_sum / max(n_pix, 1.0)
 
 
@@ -152,6 +153,16 @@ def start_run(run: Run, resume: bool, init: str | Path | None) -> None:
         run.state["init_from"] = f"{Path(init).name} sha1:{_sha1(init)[:12]}"
 
 
+def set_train_mode(model: torch.nn.Module, freeze_bn: bool) -> None:
+    """Training mode; with `freeze_bn` BatchNorm keeps normalising with its running statistics
+    and does not update them, so a fine-tune cannot drift them toward the last batches' corpus."""
+    model.train()
+    if freeze_bn:
+        for m in model.modules():
+            if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+                m.eval()
+
+
 def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
     for g in opt.param_groups:
         g["lr"] = lr
@@ -201,7 +212,7 @@ def open_data(data, val, verify: bool, cache: bool | str = False):
 def fit(run: Run, loader, val_loader, log, bar, device: str) -> None:
     """Epochs of `train_step` until the step or time budget; validate + `record` every `val_every`."""
     t_cfg, state = run.cfg.train, run.state
-    run.model.train()
+    set_train_mode(run.model, t_cfg.freeze_bn)
     done = run.should_stop()  # a finished run resumed does no extra step
     window_t, window_n, run_loss = time.perf_counter(), 0, []
     while not done and state["epoch"] < t_cfg.epochs:
