@@ -369,3 +369,7 @@ def test_freeze_bn_keeps_init_statistics_and_learns_weights(tiny_dataset, tmp_pa
         same = [torch.equal(sa[k], sb[k]) for k in stats]
         assert all(same) if freeze else not any(same)
         assert not torch.allclose(sa["scn.enc0.0.weight"], sb["scn.enc0.0.weight"])  # weights learn either way
+    with pytest.raises(InputError, match="freeze_bn: needs --init"):  # from scratch: nothing to keep
+        train(load_model_config("cpu", base + ["train.freeze_bn=true"]), tiny_dataset, tiny_dataset,
+              tmp_path / "scratch", progress=False)
+    assert not (tmp_path / "scratch").exists()

@@ -145,6 +145,8 @@ def start_run(run: Run, resume: bool, init: str | Path | None) -> None:
         torch.set_rng_state(ck["torch_rng"])
     elif last.is_file():
         raise InputError(run.out, "already holds a training run; use --resume to continue it")
+    elif init is None and run.cfg.train.freeze_bn:
+        raise InputError("train.freeze_bn", "needs --init: a new network has no BatchNorm statistics to keep")
     elif init is not None:
         _, icfg, ick = load_checkpoint(init)
         if icfg.net != run.cfg.net:
