@@ -11,6 +11,9 @@ reached lower validation error at equal time in our runs: docs/reproducing.md.)
 `train_step`, every `val_every` steps `validate` + `record` (metrics line,
 best/last checkpoints).  Checkpoints are `models.checkpoint`; `last.pt` holds everything
 needed to resume the same schedule (optimizer, step, epoch, position, RNG state).
+Fine-tuning a checkpoint on another corpus mix (`--init`): `train.freeze_bn` keeps its
+BatchNorm statistics, which otherwise follow the corpus of the latest batches
+(docs/reproducing.md, stages 4 and 5).
 """
 from __future__ import annotations
 
