@@ -148,8 +148,6 @@ def start_run(run: Run, resume: bool, init: str | Path | None) -> None:
         torch.set_rng_state(ck["torch_rng"])
     elif last.is_file():
         raise InputError(run.out, "already holds a training run; use --resume to continue it")
-    elif init is None and run.cfg.train.freeze_bn:
-        raise InputError("train.freeze_bn", "needs --init: a new network has no BatchNorm statistics to keep")
     elif init is not None:
         _, icfg, ick = load_checkpoint(init)
         if icfg.net != run.cfg.net:
@@ -259,6 +257,8 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
     from msps_render.data import make_loader
 
     out, t_cfg = Path(out), cfg.train
+    if t_cfg.freeze_bn and init is None and not resume:  # before reading (maybe caching) any data
+        raise InputError("train.freeze_bn", "needs --init: a new network has no BatchNorm statistics to keep")
     train_ds, val_ds = open_data(data, val, verify, t_cfg.cache)
     model, opt = build_model(cfg, device)
     run = Run(cfg, out, model, opt, data_hash(data), train_lights=training_lights(data))
