@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from msps_render.io.images import write_exr, write_png
-from msps_render.preview import normal_to_rgb8, tonemap
+from msps_render.preview import normal_to_rgb8, srgb8, tonemap
 from msps_render.scene.spec import SceneSpec
 
 
@@ -29,6 +29,8 @@ class Frame:
     per_light: np.ndarray | None = None  # (K, H, W, 3) float32, one image per light
     env_image: np.ndarray | None = None  # (H, W, 3) environment-only contribution
     clean_image: np.ndarray | None = None  # radiance before a sensor model (noise/quantisation), if one ran
+    albedo: np.ndarray | None = None  # (H, W, 3) diffuse albedo at pixel centres (0: none, e.g. measured)
+    blend: np.ndarray | None = None  # (H, W) weight of the second material of a measured blend
     meta: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -73,6 +75,10 @@ class Frame:
             write_png(out / "mask.png", (self.mask * 255).astype(np.uint8)),
         ]
         written.append(write_png(out / "part.png", _part_rgb8(self.part)))
+        if self.albedo is not None:  # ground-truth appearance: linear albedo, PNG shows it sRGB-encoded
+            written.append(write_exr(out / "albedo.exr", self.albedo))
+            written.append(write_png(out / "albedo.png", srgb8(self.albedo)))
+            written.append(write_exr(out / "blend.exr", self.blend[..., None].repeat(3, -1)))
         if self.per_light is not None:
             white = _white(self.image, self.mask)  # one exposure for all lights: brightnesses compare
             for k, img in enumerate(self.per_light):

@@ -12,7 +12,12 @@ def tonemap(img: np.ndarray, mask: np.ndarray | None = None, percentile: float =
     a = np.asarray(img, dtype=np.float64)
     ref = a[mask] if mask is not None and mask.any() else a.reshape(-1, a.shape[-1])
     white = np.percentile(ref, percentile) if ref.size else 1.0
-    x = np.clip(a / max(white, 1e-8), 0, 1)
+    return srgb8(a / max(white, 1e-8))
+
+
+def srgb8(x: np.ndarray) -> np.ndarray:
+    """Linear values in [0, 1] (clipped) -> sRGB-encoded uint8 (albedo maps: 1 = white)."""
+    x = np.clip(np.asarray(x, dtype=np.float64), 0, 1)
     srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     return (srgb * 255 + 0.5).astype(np.uint8)
 

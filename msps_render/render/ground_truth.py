@@ -64,3 +64,49 @@ def ground_truth(mi, scene, spec: SceneSpec):
     depth[~mask] = 0.0
     return (normal.reshape(H, W, 3).astype(np.float32), mask.reshape(H, W), depth.reshape(H, W),
             part.reshape(H, W))
+
+
+def appearance_truth(mi, scene, spec: SceneSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel diffuse albedo (H, W, 3) and blend weight (H, W) at the pixel centres.
+
+    Read back from the part meshes' appearance attributes (`render.textures`) with
+    `Shape.eval_attribute`, i.e. the very values the renderer interpolated; 0 where the
+    material has no diffuse albedo (measured, conductors) and off the object.  The
+    analytic sphere has no attributes: its one material's constant albedo.
+    """
+    import drjit as dr
+
+    from msps_render.render.textures import ALBEDO, WEIGHT, constant_albedo
+
+    W, H = spec.camera.width, spec.camera.height
+    parts = [s for s in scene.shapes() if s.id().startswith("part")]
+    if not parts or not all(s.has_attribute(ALBEDO) for s in parts):
+        _, mask, _, part = ground_truth(mi, scene, spec)
+        albedo = np.zeros((H, W, 3), np.float32)
+        for p, m in enumerate(spec.materials):
+            albedo[part == p] = constant_albedo(m)
+        return albedo, np.zeros((H, W), np.float32)
+    sensor = scene.sensors()[0]
+    if dr.is_jit_v(mi.Float):
+        idx = dr.arange(mi.UInt32, W * H)
+        pos = mi.Point2f((mi.Float(idx % W) + 0.5) / W, (mi.Float(idx // W) + 0.5) / H)
+        ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
+        si = scene.ray_intersect(ray)
+        valid = si.is_valid()
+        a = si.shape.eval_attribute_3(ALBEDO, si, valid)
+        w = si.shape.eval_attribute_1(WEIGHT, si, valid)
+        albedo = np.stack([np.array(a.x), np.array(a.y), np.array(a.z)], -1)
+        weight = np.array(w)
+        off = ~np.array(valid, dtype=bool)
+    else:  # scalar variants: one ray at a time (slow but only a fallback)
+        albedo, weight, off = np.zeros((W * H, 3)), np.zeros(W * H), np.ones(W * H, bool)
+        for i in range(W * H):
+            ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f((i % W + 0.5) / W, (i // W + 0.5) / H),
+                                       mi.Point2f(0.5, 0.5))
+            si = scene.ray_intersect(ray)
+            if si.is_valid():
+                a = si.shape.eval_attribute_3(ALBEDO, si)
+                albedo[i], weight[i], off[i] = (a[0], a[1], a[2]), si.shape.eval_attribute_1(WEIGHT, si), False
+    albedo[off] = 0.0
+    weight[off] = 0.0
+    return albedo.reshape(H, W, 3).astype(np.float32), weight.reshape(H, W).astype(np.float32)

@@ -10,6 +10,7 @@ from typing import Callable
 
 from msps_render.errors import InputError, closest
 from msps_render.render.merl_bsdf import merl_bsdf_dict
+from msps_render.render.textures import WEIGHT, attribute, textured_bsdf
 from msps_render.scene.spec import MaterialSpec
 
 
@@ -59,10 +60,17 @@ BSDFS: dict[str, Callable[[dict], dict]] = {
 
 
 def to_mitsuba(m: MaterialSpec) -> dict:
-    """Mitsuba `load_dict` description of a material (needs a variant set)."""
+    """Mitsuba `load_dict` description of a material (needs a variant set).
+
+    A textured material reads its albedo/roughness from the mesh attributes
+    (`render.textures`); a measured material with `blend` becomes Mitsuba's
+    `blendbsdf` of the two, weighted per texel by the texture."""
     if m.kind == "merl":
-        return merl_bsdf_dict(m)
+        d = merl_bsdf_dict(m)
+        if m.blend is not None:
+            d = {"type": "blendbsdf", "weight": attribute(WEIGHT, 1), "bsdf_0": d, "bsdf_1": to_mitsuba(m.blend)}
+        return d
     translate = BSDFS.get(m.kind)
     if translate is None:
         raise InputError("material", f"unknown material kind '{m.kind}'{closest(m.kind, BSDFS)}")
-    return translate(dict(m.params))
+    return textured_bsdf(m, translate(dict(m.params)))

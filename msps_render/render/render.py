@@ -17,7 +17,7 @@ import numpy as np
 
 from msps_render.frame import Frame
 from msps_render.render.emitters import render_emitters_one_pass, render_emitters_separately
-from msps_render.render.ground_truth import ground_truth
+from msps_render.render.ground_truth import appearance_truth, ground_truth
 from msps_render.render.scene_dict import build_scene_dict, emitter_ids, one_pass
 from msps_render.render.spectral import render_spectral_frame
 from msps_render.render.variant import activate, resolve_variant
@@ -39,6 +39,7 @@ def render_frame(spec: SceneSpec, variant: str | None = None, threads: int | Non
         scene = mi.load_dict(d)
     with stage(timer, "ground truth"):
         normal, mask, depth, part = ground_truth(mi, scene, spec)
+        albedo, blend = appearance_truth(mi, scene, spec)
     with stage(timer, "render"):
         if one_pass(spec, mi):
             images = render_emitters_one_pass(mi, scene, emitter_ids(spec), spec.integrator.spp,
@@ -52,4 +53,4 @@ def render_frame(spec: SceneSpec, variant: str | None = None, threads: int | Non
         per = None
     return Frame(image=np.ascontiguousarray(image[..., :3], dtype=np.float32), normal=normal, mask=mask,
                  depth=depth, part=part, spec=spec, variant=variant, per_light=per, env_image=env_img,
-                 meta={"mitsuba_version": mi.__version__, "lights": "one-pass" if one_pass(spec, mi) else "per-light"})
+                 albedo=albedo, blend=blend, meta={"mitsuba_version": mi.__version__, "lights": "one-pass" if one_pass(spec, mi) else "per-light"})

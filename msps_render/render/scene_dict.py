@@ -19,6 +19,7 @@ import numpy as np
 
 from msps_render.render.materials import to_mitsuba
 from msps_render.render.multilight import integrator_dict
+from msps_render.render.textures import subdivide_to_edge, vertex_attributes
 from msps_render.scene.envmap import envmap_pixels
 from msps_render.scene.shapes import build_mesh, face_parts
 from msps_render.scene.spec import SceneSpec
@@ -66,6 +67,11 @@ def _shapes(mi, spec: SceneSpec, timer: StageTimer | None = None) -> dict:
         return {"part0": {"type": "sphere", "radius": spec.shape.radius, "bsdf": _bsdf(mi, spec, 0, timer)}}
     with stage(timer, "mesh"):  # the BSDFs inside are timed apart (nested stage)
         mesh = build_mesh(spec.shape)
+        textures = [m.texture for m in spec.materials if m.texture is not None]
+        if textures:  # textures are sampled at vertices: make the triangles small first
+            with stage(timer, "texture"):
+                mesh = subdivide_to_edge(mesh, min(t.max_edge for t in textures))
+        R = np.asarray(spec.shape.rotation, dtype=np.float64)  # world = object @ R.T
         parts = face_parts(mesh, spec.split)
         used_parts = [p for p in range(int(parts.max()) + 1) if (parts == p).any()]
         # BSDFs are created in the order of their kind, not of their part: drjit numbers
@@ -86,6 +92,11 @@ def _shapes(mi, spec: SceneSpec, timer: StageTimer | None = None) -> dict:
             params["vertex_positions"] = dr.ravel(mi.TensorXf(mesh.vertices[used]))
             params["faces"] = dr.ravel(mi.TensorXu(remap[faces]))
             params["vertex_normals"] = dr.ravel(mi.TensorXf(mesh.normals[used]))
+            with stage(timer, "texture"):
+                attrs = vertex_attributes(spec.materials[p], mesh.vertices[used] @ R, mesh.normals[used] @ R,
+                                          None if mesh.uv is None else mesh.uv[used])
+            for name, a in attrs.items():
+                m.add_attribute(name, a.shape[1], mi.Float(np.ascontiguousarray(a, np.float32).ravel()))
             params.update()
             out[f"part{p}"] = m
         return out

@@ -15,6 +15,7 @@ class TriMesh:
     vertices: np.ndarray
     faces: np.ndarray
     normals: np.ndarray
+    uv: np.ndarray | None = None  # (V, 2) texture coordinates of a mesh file that has them
 
 
 def real_sh_basis(dirs: np.ndarray, lmax: int, lmin: int = 1) -> np.ndarray:

@@ -26,12 +26,14 @@ from msps_render.scene.spec import MaterialSpec
 log = logging.getLogger(__name__)
 
 
-def sample_analytic(family: str, rng: np.random.Generator, name: str | None = None) -> MaterialSpec:
-    """A material of an analytic family (`brdf.families.FAMILIES`) with parameters drawn from `rng`."""
+def sample_analytic(family: str, rng: np.random.Generator, name: str | None = None,
+                    gamut: str = "moderate") -> MaterialSpec:
+    """A material of an analytic family (`brdf.families.FAMILIES`) with parameters drawn from `rng`
+    (albedo colours from `gamut`: 'moderate' or 'full')."""
     fam = FAMILIES.get(family)
     if fam is None:
         raise InputError("materials.families", unknown_family(family))
-    return MaterialSpec(name=name or family, kind=fam.bsdf, params=fam.sample(rng))
+    return MaterialSpec(name=name or family, kind=fam.bsdf, params=fam.sample(rng, gamut))
 
 
 def lambertian(albedo=(0.8, 0.8, 0.8), name: str = "lambertian") -> MaterialSpec:
@@ -83,7 +85,7 @@ def sample_materials(rng: np.random.Generator, n: int, catalogue: str | os.PathL
                      merl_fraction: float = 0.5, merl_dir: str | os.PathLike | None = None,
                      families: list[str] | None = None, require_merl: bool | None = None,
                      measured: str = "auto", holdout: str = "train",
-                     split_file: str | os.PathLike | None = None) -> list[MaterialSpec]:
+                     split_file: str | os.PathLike | None = None, gamut: str = "moderate") -> list[MaterialSpec]:
     """Draw `n` distinct materials; each is measured with probability `merl_fraction`.
 
     Measured materials come from `measured_pool(measured)`, restricted by
@@ -125,7 +127,7 @@ def sample_materials(rng: np.random.Generator, n: int, catalogue: str | os.PathL
     if k and not fams:
         raise InputError(cat.path, "no analytic families to draw from (and not enough measured materials)")
     picks = rng.choice(len(fams), size=k, replace=len(fams) < k) if k else []
-    analytic = [sample_analytic(fams[int(i)], rng) for i in picks]
+    analytic = [sample_analytic(fams[int(i)], rng, gamut=gamut) for i in picks]
     mats = measured_mats + analytic
     order = rng.permutation(len(mats))
     out = [mats[int(i)] for i in order]

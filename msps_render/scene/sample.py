@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from msps_render.brdf.families import FAMILIES, unknown_family
+from msps_render.brdf.families import FAMILIES, GAMUTS, unknown_family
 from msps_render.config_io import StrictModel, read_toml, validate
 from msps_render.errors import InputError
 from msps_render.scene.envmap import envmap_pixels, irradiance_on_axis
@@ -24,6 +24,8 @@ from msps_render.scene.materials import sample_analytic, sample_materials
 from msps_render.scene.primitives import PRIMITIVES, sample_primitive_params, unknown_primitive
 from msps_render.scene.shapes import random_rotation, sample_split
 from msps_render.scene.spec import CameraSpec, EnvSpec, IntegratorSpec, SceneSpec, ShapeSpec
+from msps_render.scene.texturing import texture_materials
+from msps_render.scene.textures import TextureConfig
 from msps_render.spectral.config import SpectralConfig
 from msps_render.spectral.crosstalk import effective_crosstalk
 
@@ -100,6 +102,12 @@ class MaterialsConfig(StrictModel):
                                                    "used only when merl_fraction > 0")
     split: Literal["field", "planes"] = Field("field", description="how the object is divided into "
                                                                    "material parts")
+    albedo: Literal[GAMUTS] = Field("moderate", description="albedo colours of analytic families: moderate "
+                                                            "(every channel >= half the largest; corpora up to "
+                                                            "v0.4) or full (saturated and dark; "
+                                                            "docs/appearance.md)")
+    texture: TextureConfig = Field(default_factory=TextureConfig,
+                                   description="spatially varying appearance (docs/appearance.md)")
 
     @field_validator("families")
     @classmethod
@@ -210,9 +218,9 @@ def _sample_materials(cfg: MaterialsConfig, n: int, rng: np.random.Generator):
     if cfg.merl_fraction > 0 or cfg.catalogue:
         return tuple(sample_materials(rng, n, catalogue=cfg.catalogue, merl_fraction=cfg.merl_fraction,
                                       merl_dir=cfg.merl_dir, families=cfg.families, measured=cfg.measured,
-                                      holdout=cfg.holdout, split_file=cfg.split_file))
+                                      holdout=cfg.holdout, split_file=cfg.split_file, gamut=cfg.albedo))
     fams = rng.choice(cfg.families, size=n, replace=len(cfg.families) < n)
-    return tuple(sample_analytic(str(f), rng) for f in fams)
+    return tuple(sample_analytic(str(f), rng, gamut=cfg.albedo) for f in fams)
 
 
 def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = None,
@@ -250,6 +258,11 @@ def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = 
     if ec.enabled and ec.ratio > 0:
         env = environment_for_ratio(ec, lights_plane_irradiance(lights), rng)
     integ = cfg.integrator.model_copy(update={"seed": int(rng.integers(2**31 - 1))})
+    if cfg.materials.texture.fraction > 0:  # drawn last: presets without textures keep every draw
+        if cfg.mode == "spectral":
+            raise InputError("scene.materials.texture", "textures need mode 'rgb' (spectral textures are "
+                                                        "not supported yet)")
+        materials = texture_materials(cfg.materials, shape, materials, rng)
     return SceneSpec(shape=shape, split=split, materials=materials, lights=lights, environment=env,
                      camera=cfg.camera, integrator=integ, mode=cfg.mode, camera_response=camera_response,
                      crosstalk=tuple(tuple(float(x) for x in row) for row in np.asarray(crosstalk)),

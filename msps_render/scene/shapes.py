@@ -49,6 +49,12 @@ def blobby_mesh(coeffs: tuple[float, ...], subdivisions: int = 5) -> tuple[np.nd
 # ----------------------------------------------------------------- user meshes
 def load_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Read a mesh with trimesh; reject files that do not give a usable triangle mesh."""
+    v, f, _ = load_mesh_file_uv(path)
+    return v, f
+
+
+def load_mesh_file_uv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """`load_mesh_file` plus the per-vertex UVs where the file has them (else None)."""
     import trimesh
 
     p = Path(path)
@@ -70,7 +76,14 @@ def load_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(p, f"mesh has {int((~np.isfinite(v)).any(axis=1).sum())} vertices with NaN/inf coordinates")
     if f.min() < 0 or f.max() >= len(v):
         raise InputError(p, "mesh faces index vertices that do not exist")
-    return orient_outward(v, f)
+    uv = getattr(getattr(loaded, "visual", None), "uv", None)
+    uv = np.asarray(uv, np.float64) if uv is not None and len(uv) == len(v) else None
+    return (*orient_outward(v, f), uv)
+
+
+def mesh_has_uv(path: str | Path) -> bool:
+    """Does the mesh file carry per-vertex texture coordinates?"""
+    return load_mesh_file_uv(path)[2] is not None
 
 
 def orient_outward(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -120,10 +133,11 @@ def random_rotation(rng: np.random.Generator) -> tuple:
 
 def build_mesh(shape: ShapeSpec) -> TriMesh:
     """ShapeSpec -> triangle mesh in the camera/world frame, inside radius `shape.radius`."""
+    uv = None
     if shape.kind == "blobby":
         v, f = blobby_mesh(tuple(shape.sh_coeffs), shape.subdivisions)
     elif shape.kind == "mesh":
-        v, f = load_mesh_file(shape.path)
+        v, f, uv = load_mesh_file_uv(shape.path)
     elif shape.kind == "primitive":
         v, f = orient_outward(*build_primitive(shape.name, dict(shape.params)))
     elif shape.kind == "procedural":
@@ -137,13 +151,14 @@ def build_mesh(shape: ShapeSpec) -> TriMesh:
     remap = np.full(len(v), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     v, f = v[used], remap[f]
+    uv = uv[used].astype(np.float32) if uv is not None else None
     R = np.asarray(shape.rotation, dtype=np.float64)
     v = normalise(v, shape.radius) @ R.T
     if shape.kind == "procedural":  # keep creases sharp: split vertices across sharp edges
         v, f, n = crease_normals(v, f)
     else:
         n = vertex_normals(v, f)
-    return TriMesh(v.astype(np.float32), f.astype(np.uint32), n.astype(np.float32))
+    return TriMesh(v.astype(np.float32), f.astype(np.uint32), n.astype(np.float32), uv)
 
 
 # ------------------------------------------------------------------- parts

@@ -19,6 +19,7 @@ from typing import Annotated, Literal, Union
 from pydantic import Field, field_validator, model_validator
 
 from msps_render.brdf.families import MATERIAL_KINDS
+from msps_render.scene.textures import TextureSpec
 from msps_render.config_io import FrozenModel
 from msps_render.errors import InputError, format_validation_error
 from msps_render.scene.families import SHAPE_FAMILIES, unknown_family_message
@@ -96,11 +97,17 @@ MaterialKind = Literal[MATERIAL_KINDS]  # derived from the family registry (brdf
 
 
 class MaterialSpec(FrozenModel):
-    """A material by kind and parameters; `name` says which library entry it came from."""
+    """A material by kind and parameters; `name` says which library entry it came from.
+
+    `texture` (optional) varies it across the surface: the albedo and roughness of an
+    analytic kind, or, for a measured one with `blend`, the per-texel weight of `blend`
+    (a second measured material) against this one (`scene.textures`)."""
 
     name: str
     kind: MaterialKind
     params: dict[str, Union[float, str, tuple[float, float, float]]] = Field(default_factory=dict)
+    texture: TextureSpec | None = None
+    blend: "MaterialSpec | None" = None
 
 
 # --------------------------------------------------------------------- shapes
