@@ -17,12 +17,14 @@ camera would see them at once:
 which is exactly how the renderer forms an RGB image from three lights of RGB
 `M[:, k]`.  It writes `image.exr` (linear), `mask.png`, `calibration.json` (the
 chosen lights' real directions and M, in the schema `msps predict
---calibration` reads) and `preview.png`.
+--calibration` reads) and `preview.png`.  `compose_arrays` is the same
+composition in memory (no file written), shared with `msps bench-real`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -158,31 +160,58 @@ def parse_crosstalk(text: str | None) -> np.ndarray:
     return M
 
 
-def compose_capture(capture_dir: str | Path, out: str | Path, slant_deg: float = 30.0,
-                    tilts_deg=(0.0, 120.0, 240.0), crosstalk: np.ndarray | None = None,
-                    srgb: bool = False) -> dict:
-    """Write OUT/{image.exr, mask.png, calibration.json, preview.png}; returns a summary with warnings."""
-    from msps_render.calibration import write_calibration
-    from msps_render.io.png16 import read_png, write_png
-    from msps_render.io.staging import check_new_out, staged_dir
-    from msps_render.io.images import write_exr
-    from msps_render.preview import tonemap
-    from msps_render.calibration import PAPER_CROSSTALK, direction_from_slant_tilt
+class Composed(NamedTuple):
+    """One pseudo-multispectral image composed in memory (`compose_arrays`)."""
 
-    out = Path(out)
+    image: np.ndarray  # (H, W, 3) linear, 0 outside the mask
+    mask: np.ndarray  # (H, W) bool
+    light_dirs: np.ndarray  # (3, 3) the chosen lights' measured directions (rows)
+    deviation_deg: np.ndarray  # (3,) angle of each chosen light to its target
+    indices: np.ndarray  # (3,) indices into capture.images / light_dirs
+
+
+def _check_layout(slant_deg: float, tilts_deg) -> list[float]:
+    from msps_render.calibration import direction_from_slant_tilt
+
     tilts = [float(t) for t in tilts_deg]
     if len(tilts) != 3:
         raise InputError("--tilts", f"need 3 tilts, got {len(tilts)}")
     direction_from_slant_tilt(slant_deg, 0.0)  # validates the slant
-    M = PAPER_CROSSTALK.copy() if crosstalk is None else np.asarray(crosstalk, np.float64)
-    cap = read_capture(capture_dir)
+    return tilts
+
+
+def select_lights(cap: Capture, slant_deg: float = 30.0,
+                  tilts_deg=(0.0, 120.0, 240.0)) -> tuple[np.ndarray, np.ndarray]:
+    """(indices into the capture, deviations in degrees) of the three front lights (z > 0) nearest the layout."""
+    tilts = _check_layout(slant_deg, tilts_deg)
     front = cap.light_dirs[:, 2] > 0
     if front.sum() < 3:
         raise InputError(cap.root / "light_directions.txt", "fewer than 3 lights in front of the object (z > 0)")
     cand = np.nonzero(front)[0]
     sel, dev = choose_lights(cap.light_dirs[cand], slant_deg, tilts)
-    idx = cand[sel]
-    check_new_out(out)
+    return cand[sel], dev
+
+
+def read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """A mask PNG as bool (channel 0 > 0), checked against the images' (H, W)."""
+    from msps_render.io.png16 import read_png
+
+    m = read_png(path)
+    m = (m[..., 0] if m.ndim == 3 else m) > 0
+    if m.shape != tuple(shape):
+        raise InputError(path, f"mask is {m.shape[1]}x{m.shape[0]}, images are {shape[1]}x{shape[0]}")
+    return m
+
+
+def compose_arrays(cap: Capture, slant_deg: float = 30.0, tilts_deg=(0.0, 120.0, 240.0),
+                   crosstalk: np.ndarray | None = None, srgb: bool = False) -> Composed:
+    """The composition itself, in memory (no file written): the three lights nearest the layout,
+    each photo divided by its light's intensity, mixed by `composed[c] = sum_k M[c,k] photo_k[c]`;
+    0 outside the mask (mask.png, else the non-zero pixels)."""
+    from msps_render.calibration import PAPER_CROSSTALK
+
+    M = PAPER_CROSSTALK.copy() if crosstalk is None else np.asarray(crosstalk, np.float64)
+    idx, dev = select_lights(cap, slant_deg, tilts_deg)
     photos = [read_photo(cap.images[i], srgb) for i in idx]
     H, W = photos[0].shape[:2]
     for i, p in zip(idx, photos):
@@ -193,17 +222,30 @@ def compose_capture(capture_dir: str | Path, out: str | Path, slant_deg: float =
     comp = np.zeros((H, W, 3))
     for k in range(3):
         comp += unit[k] * M[:, k][None, None, :]
-    if cap.mask_path is not None:
-        m = read_png(cap.mask_path)
-        m = (m[..., 0] if m.ndim == 3 else m) > 0
-        if m.shape != (H, W):
-            raise InputError(cap.mask_path, f"mask is {m.shape[1]}x{m.shape[0]}, images are {W}x{H}")
-    else:
-        m = comp.max(-1) > 0
+    m = read_mask(cap.mask_path, (H, W)) if cap.mask_path is not None else comp.max(-1) > 0
     comp[~m] = 0.0
+    return Composed(comp, m, cap.light_dirs[idx], np.asarray(dev, np.float64), idx)
+
+
+def compose_capture(capture_dir: str | Path, out: str | Path, slant_deg: float = 30.0,
+                    tilts_deg=(0.0, 120.0, 240.0), crosstalk: np.ndarray | None = None,
+                    srgb: bool = False) -> dict:
+    """Write OUT/{image.exr, mask.png, calibration.json, preview.png}; returns a summary with warnings."""
+    from msps_render.calibration import PAPER_CROSSTALK, write_calibration
+    from msps_render.io.images import write_exr
+    from msps_render.io.png16 import write_png
+    from msps_render.io.staging import check_new_out, staged_dir
+    from msps_render.preview import tonemap
+
+    out = Path(out)
+    tilts = _check_layout(slant_deg, tilts_deg)
+    M = PAPER_CROSSTALK.copy() if crosstalk is None else np.asarray(crosstalk, np.float64)
+    cap = read_capture(capture_dir)
+    select_lights(cap, slant_deg, tilts)  # a capture without 3 front lights fails before --out is checked
+    check_new_out(out)
+    comp, m, L, dev, idx = compose_arrays(cap, slant_deg, tilts, M, srgb)
     warnings = [f"light {cap.images[i].name} is {d:.1f} deg from the target (slant {slant_deg:g}, tilt {t:g})"
                 for i, d, t in zip(idx, dev, tilts) if d > WARN_DEVIATION_DEG]
-    L = cap.light_dirs[idx]
     info = {"capture": str(cap.root.resolve()), "images": [cap.images[i].name for i in idx],
             "light_indices": [int(i) + 1 for i in idx], "target_slant_deg": float(slant_deg),
             "target_tilts_deg": tilts, "deviation_deg": [float(d) for d in dev],

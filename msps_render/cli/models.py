@@ -78,3 +78,51 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
     files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk,
                          linear=linear)
     typer.echo("wrote " + ", ".join(map(str, files)))
+
+
+@app.command("bench-real")
+@clean_errors
+def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture folders in the DiLiGenT layout "
+                                                         "(e.g. pmsData/ballPNG): 001.png ..., filenames.txt, "
+                                                         "light_directions.txt, light_intensities.txt, mask.png, "
+                                                         "Normal_gt.mat or Normal_gt.png"),
+                   out: Path = typer.Option(..., "--out", "-o", help="new (or empty) report directory"),
+                   checkpoint: List[str] = typer.Option([], help="NAME=PATH of a checkpoint to score (repeat "
+                                                        "to compare several; default: net = the shipped "
+                                                        "models/dualcue-cpu.pt)"),
+                   slant: float = typer.Option(30.0, help="target slant of the three lights (deg)"),
+                   tilts: str = typer.Option("0,120,240", help="target tilts (deg, comma-separated)"),
+                   crosstalk: Optional[str] = typer.Option(None, help="'paper' (default, 0.92/0.04), 'identity' "
+                                                           "or a JSON 3x3 (rows: channels, columns: lights)"),
+                   skip: List[str] = typer.Option([], help="leave out a capture before the nearest three are "
+                                                  "chosen: FILE (e.g. 001.png, in every folder) or "
+                                                  "OBJECT/FILE (one folder); repeatable"),
+                   srgb: bool = typer.Option(False, "--srgb", help="PNG photos are sRGB-encoded (default: "
+                                             "linear, as raw captures)"),
+                   threads: Optional[int] = typer.Option(None, help="torch CPU threads")):
+    """Score checkpoints and calibrated Lambertian PS on real captures (validation only: never train on
+    real images).  Each folder is composed as `msps compose` does (the three captures nearest the
+    layout, divided by light intensity, mixed by the crosstalk); the angular error is taken over the
+    mask, leaving out zero ground-truth normals.  Writes results.json, results.md, OBJECT/error_METHOD.png,
+    OBJECT/normal_METHOD.png and figure.png."""
+    from msps_render.compose import parse_crosstalk
+    from msps_render.errors import InputError
+    from msps_render.io.staging import check_new_out
+    from msps_render.models.realbench import run_bench_real, summary_table
+
+    check_new_out(out)
+    try:
+        t = [float(x) for x in tilts.split(",") if x.strip()]
+    except ValueError:
+        raise InputError("--tilts", f"not a comma-separated list of numbers: {tilts!r}") from None
+    M = parse_crosstalk(crosstalk)
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
+    bench = run_bench_real(captures, out, checkpoint, slant, t, M, skip, srgb,
+                           warn=lambda w: typer.echo(f"warning: {w}", err=True))
+    for line in summary_table(bench):
+        typer.echo(line)
+    typer.echo(f"wrote {out}/results.json, results.md, figure.png and per-object maps "
+               f"({', '.join(bench.summary['objects'])})")
