@@ -41,7 +41,13 @@ class SensorConfig(StrictModel):
     full_well_e: float = Field(10000.0, gt=0)
     read_noise_e: float = Field(3.0, ge=0)
     poisson: bool = True
-    bits: Literal[8, 12, 16] = 12
+    bits: Literal[8, 10, 12, 16] = 12
+    bits_choices: list[Literal[8, 10, 12, 16]] | None = Field(
+        None, description="draw the bit depth per frame from these (overrides bits)")
+    response: Literal["linear", "gamma", "srgb"] = Field(
+        "linear", description="camera response applied before digitising: linear (raw), a power law "
+                              "x^(1/gamma), or the sRGB curve; the stored image is NOT linearised")
+    gamma: float = Field(2.2, gt=0.0, description="response = 'gamma': the exponent's denominator")
 
     @field_validator("exposure")
     @classmethod
@@ -58,7 +64,7 @@ def auto_exposure(image: np.ndarray, mask: np.ndarray | None, cfg: SensorConfig)
 
 
 def sensor_response(image: np.ndarray, cfg: SensorConfig, exposure: float,
-                    rng: np.random.Generator) -> np.ndarray:
+                    rng: np.random.Generator, bits: int | None = None) -> np.ndarray:
     """Radiance -> recorded radiance (float32), the model of `SensorConfig`."""
     s = np.clip(np.asarray(image, dtype=np.float64) * exposure, 0.0, 1.0)
     e = s * cfg.full_well_e
@@ -67,9 +73,18 @@ def sensor_response(image: np.ndarray, cfg: SensorConfig, exposure: float,
     if cfg.read_noise_e > 0:
         e = e + rng.normal(0.0, cfg.read_noise_e, size=e.shape)
     e = np.clip(e, 0.0, cfg.full_well_e)
-    levels = float(2 ** cfg.bits - 1)
-    dn = np.round(e / cfg.full_well_e * levels)
+    levels = float(2 ** (bits or cfg.bits) - 1)
+    dn = np.round(camera_response(e / cfg.full_well_e, cfg) * levels)
     return (dn / levels / exposure).astype(np.float32)
+
+
+def camera_response(s: np.ndarray, cfg: SensorConfig) -> np.ndarray:
+    """Fraction of full well (linear, [0, 1]) -> the camera's encoded value in [0, 1]."""
+    if cfg.response == "gamma":
+        return np.power(s, 1.0 / cfg.gamma)
+    if cfg.response == "srgb":
+        return np.where(s <= 0.0031308, 12.92 * s, 1.055 * np.power(s, 1 / 2.4) - 0.055)
+    return s
 
 
 def apply_sensor(frame: Frame, cfg: SensorConfig | None, rng: np.random.Generator) -> Frame:
@@ -78,9 +93,11 @@ def apply_sensor(frame: Frame, cfg: SensorConfig | None, rng: np.random.Generato
         return frame
     clean = frame.clean_image if frame.clean_image is not None else frame.image
     exposure = auto_exposure(clean, frame.mask, cfg) if cfg.exposure == "auto" else float(cfg.exposure)
-    image = sensor_response(clean, cfg, exposure, rng)
+    # drawn only when asked, so configs without bits_choices keep their noise stream
+    bits = int(rng.choice(cfg.bits_choices)) if cfg.bits_choices else cfg.bits
+    image = sensor_response(clean, cfg, exposure, rng, bits)
     meta = dict(frame.meta)
-    meta["sensor"] = {**cfg.model_dump(), "exposure_used": exposure,
+    meta["sensor"] = {**cfg.model_dump(), "bits_used": bits, "exposure_used": exposure,
                       "saturation_radiance": 1.0 / exposure,
                       "saturated_fraction": float((clean * exposure >= 1.0).mean())}
     return dataclasses.replace(frame, image=image, clean_image=np.asarray(clean, dtype=np.float32), meta=meta)

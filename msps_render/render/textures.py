@@ -7,7 +7,7 @@ kernel literal), and the ground truth reads the very same interpolated values
 back with `Shape.eval_attribute` (`render.ground_truth.appearance_truth`).  The
 price is resolution: a texture is sampled at the vertices, so textured meshes
 are first subdivided until no edge is longer than `TextureSpec.max_edge`
-(~2.4 px at 256 px; `subdivide_to_edge`).
+(default 0.03, ~3.7 px at 256 px; `subdivide_to_edge`).
 
 Every part mesh carries the three attributes (constant where the part is not
 textured), so the ground truth can evaluate them on any hit:
@@ -27,7 +27,7 @@ ALBEDO_PARAM = {"diffuse": "reflectance", "plastic": "diffuse_reflectance",
                 "roughplastic": "diffuse_reflectance", "principled": "base_color"}
 ROUGHNESS_PARAM = {"roughconductor": "alpha", "principled": "roughness"}  # texturable in Mitsuba
 ALBEDO, WEIGHT, ROUGHNESS = "vertex_albedo", "vertex_weight", "vertex_roughness"
-MAX_FACES = 600_000  # subdivision stops before a mesh exceeds this (memory, BVH time)
+MAX_FACES = 320_000  # subdivision stops before a mesh exceeds this (memory, BVH time)
 
 
 def constant_albedo(m: MaterialSpec) -> tuple[float, float, float]:

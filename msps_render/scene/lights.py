@@ -15,6 +15,25 @@ from msps_render.scene.spec import LightSpec
 
 
 
+def random_crosstalk(rng: np.random.Generator, diagonal: tuple[float, float] = (0.75, 0.95),
+                     asymmetry: float = 0.5, n: int = 3) -> np.ndarray:
+    """A crosstalk matrix of a random rig (columns sum to 1, as the sampler's convention).
+
+    Column k: its own channel gets d ~ U(diagonal) (diagonal dominance); the rest 1 - d is
+    split between the other two channels at a fraction f ~ U(0.5 - asymmetry/2, 0.5 + asymmetry/2)
+    (asymmetry 0: the paper's symmetric leak; 1: anything from all-in-one to even).
+    """
+    M = np.zeros((3, n))
+    for k in range(n):
+        d = float(rng.uniform(*diagonal))
+        f = float(rng.uniform(0.5 - asymmetry / 2, 0.5 + asymmetry / 2))
+        others = [i for i in range(3) if i != k % 3]
+        M[k % 3, k] = d
+        M[others[0], k] = (1 - d) * f
+        M[others[1], k] = (1 - d) * (1 - f)
+    return M
+
+
 def three_lights(
     slant_deg: float = 30.0,
     tilts_deg=(0.0, 120.0, 240.0),

@@ -19,7 +19,7 @@ from msps_render.errors import InputError
 from msps_render.scene.envmap import envmap_pixels, irradiance_on_axis
 from msps_render.scene.families import expand_families, sample_family_params
 from msps_render.scene.geometry import sample_blobby_coeffs
-from msps_render.scene.lights import PAPER_CROSSTALK, three_lights
+from msps_render.scene.lights import PAPER_CROSSTALK, random_crosstalk, three_lights
 from msps_render.scene.materials import sample_analytic, sample_materials
 from msps_render.scene.primitives import PRIMITIVES, sample_primitive_params, unknown_primitive
 from msps_render.scene.shapes import random_rotation, sample_split
@@ -115,6 +115,21 @@ class MaterialsConfig(StrictModel):
         return _known(v, FAMILIES, unknown_family)
 
 
+class CrosstalkRandom(StrictModel):
+    """`[scene.lights.crosstalk_random]`: one crosstalk matrix per frame (`lights.random_crosstalk`)."""
+
+    diagonal: tuple[float, float] = Field((0.75, 0.95), description="own-channel share of each light [lo, hi]")
+    asymmetry: float = Field(0.5, ge=0.0, le=1.0, description="how unevenly a light's leak splits over the "
+                                                              "other two channels (0 = evenly, the paper)")
+
+    @field_validator("diagonal")
+    @classmethod
+    def _diag(cls, v):
+        if not 0.34 <= v[0] <= v[1] <= 1.0:
+            raise ValueError(f"diagonal must satisfy 0.34 <= lo <= hi <= 1 (diagonally dominant), got {list(v)}")
+        return v
+
+
 class LightsConfig(StrictModel):
     kind: Literal["directional", "point"] = Field("directional", description="light type")
     slant_deg: float = Field(30.0, gt=0.0, lt=90.0, description="angle between each light and the view "
@@ -136,6 +151,8 @@ class LightsConfig(StrictModel):
     slant_range_deg: tuple[float, float] | None = Field(
         None, description="draw the slant per frame uniformly in [lo, hi] deg (robust corpora); "
                           "overrides slant_deg")
+    crosstalk_random: CrosstalkRandom | None = Field(
+        None, description="rgb mode: draw the crosstalk per frame (a random rig) instead of `crosstalk`")
 
     @field_validator("slant_range_deg")
     @classmethod
@@ -239,6 +256,9 @@ def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = 
     split = sample_split(rng, n, cfg.materials.split)
     lc = cfg.lights
     crosstalk, spectra, camera_response = lc.crosstalk, None, None
+    if lc.crosstalk_random is not None and cfg.mode == "rgb":  # a random rig per frame
+        crosstalk = random_crosstalk(rng, lc.crosstalk_random.diagonal, lc.crosstalk_random.asymmetry,
+                                     len(lc.tilts_deg))
     if cfg.mode == "spectral":  # effective crosstalk of the light spectra x camera
         sc = cfg.spectral or SpectralConfig()
         if len(sc.lights) != len(lc.tilts_deg):

@@ -43,7 +43,7 @@ class TextureSpec(FrozenModel):
     image: str | None = None
     mapping: Literal["uv", "triplanar"] = "triplanar"
     roughness: tuple[float, float] | None = None  # (lo, hi) roughness/alpha driven by w
-    max_edge: float = Field(0.02, gt=0, description="mesh edges longer than this are subdivided first")
+    max_edge: float = Field(0.03, gt=0, description="mesh edges longer than this are subdivided first")
 
     @model_validator(mode="after")
     def _check(self) -> "TextureSpec":
@@ -75,8 +75,8 @@ class TextureConfig(StrictModel):
     roughness: bool = Field(True, description="the texture also varies roughness where a family has one")
     blend: bool = Field(True, description="a textured measured part blends two measured materials per "
                                           "texel (Mitsuba blendbsdf, weight = the texture)")
-    max_edge: float = Field(0.02, gt=0, description="textured meshes are subdivided until no edge is longer "
-                                                    "(scene units; 0.02 ~ 2.4 px at 256 px over 2.1 units)")
+    max_edge: float = Field(0.03, gt=0, description="textured meshes are subdivided until no edge is longer "
+                                                    "(scene units; 0.03 ~ 3.7 px at 256 px over 2.1 units)")
 
     @field_validator("kinds")
     @classmethod
