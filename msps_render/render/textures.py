@@ -54,7 +54,7 @@ def _plugin_class(variant: str):
         def __init__(self, props):
             super().__init__(props)
             self.name = props["name"]
-            self.channels = int(props["channels"]) if props.has_property("channels") else 3
+            self.channels = int(props["channels"]) if "channels" in props else 3
 
         def eval(self, si, active=True):
             if self.channels == 1:
