@@ -210,3 +210,66 @@ def test_measured_blend_weight_ground_truth(rgb_variant):
     assert np.allclose(f.image[zero], only_a.image[zero], rtol=0.05, atol=1e-3)
     one = binary_erosion(f.blend == 1, iterations=2) & inner
     assert np.abs(f.image[one] - only_a.image[one]).mean() > 0.01  # material B shows where w = 1
+
+
+# ----------------------------------------------------------------- command line
+def _msps(*args):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "msps_render.cli", *args], capture_output=True, text=True)
+
+
+def _texture_sets(folder):
+    return ["--set", "scene.materials.texture.fraction=1", "--set", 'scene.materials.texture.kinds=["image"]',
+            "--set", f"scene.materials.texture.folder={folder}"]
+
+
+def test_render_refuses_bad_textures_before_writing(tmp_path):
+    from msps_render.io.png16 import write_png
+
+    folder = tmp_path / "tex"
+    folder.mkdir()
+    out = tmp_path / "out"
+    r = _msps("render", "demo", "--out", str(out), *_texture_sets(folder))
+    assert r.returncode == 1 and not out.exists()
+    assert r.stderr.strip().count("\n") == 0 and "texture folder holds no images" in r.stderr
+    (folder / "broken.png").write_bytes(b"garbage")
+    r = _msps("render", "demo", "--out", str(out), *_texture_sets(folder))
+    assert r.returncode == 1 and not out.exists() and "broken.png" in r.stderr
+    (folder / "broken.png").unlink()
+    write_png(folder / "ok.png", np.full((4, 4, 3), 30000, np.uint16))
+    mesh = tmp_path / "tet.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    r = _msps("render", "demo", "--out", str(out), *_texture_sets(folder), "--set", "scene.shape.source=mesh",
+              "--set", f'scene.shape.meshes=["{mesh}"]', "--set", "scene.materials.texture.mapping=uv")
+    assert r.returncode == 1 and not out.exists()
+    assert "tet.obj" in r.stderr and "without UVs" in r.stderr
+
+
+def test_uv_mapped_image_texture_on_a_mesh_with_uvs(rgb_variant, tmp_path):
+    """spot has UVs: its albedo truth takes the texture's two colours where mapping = 'uv'."""
+    from conftest import SHARED
+
+    from msps_render.io.png16 import write_png
+    from msps_render.render import render_frame
+    from msps_render.scene.shapes import mesh_has_uv
+
+    spot = SHARED / "meshes" / "ajc_spot.obj"
+    if not spot.is_file():
+        pytest.skip("../shared/data absent")
+    assert mesh_has_uv(spot)
+    img = np.zeros((64, 64, 3), np.uint8)
+    img[:, :, 0] = 200
+    img[(np.arange(64) // 4) % 4 == 0] = (0, 0, 200)  # blue bands, 4 texels wide: the UV layout shows
+    write_png(tmp_path / "lines.png", img)
+    tex = TextureSpec(kind="image", seed=0, scale=0.5, image=str(tmp_path / "lines.png"), mapping="uv")
+    mat = MaterialSpec(name="diffuse", kind="diffuse", params={"reflectance": (0.5, 0.5, 0.5)}, texture=tex)
+    spec = SceneSpec(shape=ShapeSpec(kind="mesh", name="spot", path=str(spot), radius=0.95),
+                     materials=(mat,), lights=(LightSpec(direction=(0.0, 0.0, 1.0), rgb=(E, E, E)),),
+                     camera=CameraSpec(width=96, height=96), integrator=IntegratorSpec(kind="direct", spp=8))
+    f = render_frame(spec, variant=rgb_variant)
+    a = f.albedo[f.mask]
+    srgb200 = ((200 / 255 + 0.055) / 1.055) ** 2.4  # 8-bit texture images are sRGB-decoded
+    assert np.abs(a.max(0)[[0, 2]] - srgb200).max() < 0.02  # both colours reach the surface ...
+    assert (a[:, 0] > 0.5).mean() > 0.5  # ... mostly red, as the image is

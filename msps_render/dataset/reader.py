@@ -118,10 +118,13 @@ def iter_whole_frames(path: str | Path) -> Iterator[WholeFrame]:
         objs = h[K.FRAME_OBJECT].asstr()[()]
         mats = h[K.FRAME_MATERIALS].asstr()[()]
         conds = h[K.FRAME_CONDITION].asstr()[()]
+        appearance = K.FRAME_ALBEDO in h  # shards before v0.5 have none
         for i in range(n_whole_frames(h)):
             image, normal, mask = read_whole_frame(h, i)
             yield WholeFrame(image, normal, mask, h[K.FRAME_LIGHT_DIRS][i], h[K.FRAME_CROSSTALK][i],
-                             str(objs[i]), str(mats[i]), str(conds[i]), path.name, i)
+                             str(objs[i]), str(mats[i]), str(conds[i]), path.name, i,
+                             h[K.FRAME_ALBEDO][i].astype(np.float32) if appearance else None,
+                             h[K.FRAME_BLEND][i].astype(np.float32) if appearance else None)
 
 
 def read_digests(path: str | Path) -> dict[str, str]:

@@ -37,6 +37,8 @@ FRAME_SEED = "frames/frame_seed"
 FRAME_IMAGE = "frames/image"  # optional whole frames (store_frames = true)
 FRAME_NORMAL = "frames/normal"
 FRAME_MASK = "frames/mask"
+FRAME_ALBEDO = "frames/albedo"  # (F, H, W, 3) float16, whole frames only: diffuse albedo (0 = none)
+FRAME_BLEND = "frames/blend"  # (F, H, W) float16, whole frames only: measured-blend weight
 FRAME_SCENE_JSON = "frames/scene_json"  # utf-8 strings
 FRAME_OBJECT = "frames/object"
 FRAME_MATERIALS = "frames/materials"
@@ -103,6 +105,8 @@ class FrameRecord:
     image: np.ndarray | None = None
     normal: np.ndarray | None = None
     mask: np.ndarray | None = None
+    albedo: np.ndarray | None = None
+    blend: np.ndarray | None = None
 
 
 @dataclass
@@ -127,3 +131,5 @@ class WholeFrame:
     condition: str
     shard: str
     index: int
+    albedo: np.ndarray | None = None  # (H, W, 3) ground-truth diffuse albedo (shards from v0.5 on)
+    blend: np.ndarray | None = None  # (H, W) measured-blend weight

@@ -60,6 +60,9 @@ def shard_arrays(content: ShardContent, image_dtype: str = "float16", normal_dty
         arrays[K.FRAME_IMAGE] = np.stack([f.image for f in fr]).astype(np.float32)
         arrays[K.FRAME_NORMAL] = np.stack([f.normal for f in fr]).astype(np.float32)
         arrays[K.FRAME_MASK] = np.stack([f.mask for f in fr]).astype(np.uint8)
+        if all(f.albedo is not None for f in fr):
+            arrays[K.FRAME_ALBEDO] = np.stack([f.albedo for f in fr]).astype(np.float16)
+            arrays[K.FRAME_BLEND] = np.stack([f.blend for f in fr]).astype(np.float16)
     strings = {K.FRAME_SCENE_JSON: [f.scene_json for f in fr], K.FRAME_OBJECT: [f.object for f in fr],
                K.FRAME_MATERIALS: [f.materials for f in fr], K.FRAME_CONDITION: [f.condition for f in fr]}
     return arrays, strings

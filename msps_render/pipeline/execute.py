@@ -84,7 +84,9 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
                 materials=";".join(m.name for m in spec.materials), condition=task.condition,
                 image=frame.image if d.storage.store_frames else None,
                 normal=frame.normal if d.storage.store_frames else None,
-                mask=frame.mask if d.storage.store_frames else None))
+                mask=frame.mask if d.storage.store_frames else None,
+                albedo=frame.albedo if d.storage.store_frames else None,
+                blend=frame.blend if d.storage.store_frames else None))
         if timer is not None:
             timer.end_frame()
     P = d.patches.size

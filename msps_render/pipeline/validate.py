@@ -4,7 +4,7 @@
 touched, for every sweep condition: each mesh file (readable, finite, has
 faces), each environment-map file (finite, non-negative, not black), the
 material catalogue and every measured-material (MERL) table it can draw
-(header and size), the crosstalk matrix (finite, non-negative, every light
+(header and size), texture images and UV mapping, the crosstalk matrix (finite, non-negative, every light
 reaching a channel, invertible), and one sampled scene as a smoke test of the
 sampler's own checks.  A bad input is an `InputError` naming the file or key,
 so a render never stops half-way (leaving a manifest and no shards) because of
@@ -84,6 +84,34 @@ def _check_envmap(sc) -> None:
                                      f"the requested ratio {env.ratio}")
 
 
+def _check_textures(sc, seen: set) -> None:
+    """Texture images (every file of the folder readable, RGB or grey), and UV mapping only of meshes
+    that have UVs, before anything is rendered."""
+    tc = sc.materials.texture
+    if tc.fraction <= 0:
+        return
+    if sc.mode == "spectral":
+        raise InputError("scene.materials.texture", "textures need mode 'rgb' (spectral textures are not "
+                                                    "supported yet)")
+    if "image" not in tc.kinds:
+        return
+    from msps_render.scene.shapes import mesh_has_uv
+    from msps_render.scene.textures import read_texture_image, texture_images
+
+    for p in texture_images(tc.folder):
+        if str(p) not in seen:
+            seen.add(str(p))
+            read_texture_image(p)
+    if tc.mapping == "uv":
+        if sc.shape.source != "mesh":
+            raise InputError("scene.materials.texture.mapping", f"UV mapping needs meshes with UVs; shape "
+                                                                f"source '{sc.shape.source}' has none")
+        for m in sc.shape.mesh_paths():
+            if not mesh_has_uv(m):
+                raise InputError(m, "UV mapping asked of a mesh without UVs (texture.mapping = 'uv'; "
+                                    "use 'auto' or 'triplanar')")
+
+
 def _check_crosstalk(sc) -> None:
     if sc.mode == "spectral":
         sp = sc.spectral or SpectralConfig()
@@ -115,6 +143,7 @@ def validate_inputs(cfg, source: str | None = None) -> None:
             _check_meshes(sc, meshes)
             _check_envmap(sc)
             _check_materials(sc.materials, tables)
+            _check_textures(sc, tables)
             sample_scene(sc, np.random.default_rng(ccfg.dataset.seed))  # the sampler's own checks
         except InputError as e:
             if source and e.source.split(".")[0] in _CONFIG_KEYS:
