@@ -273,3 +273,18 @@ def test_uv_mapped_image_texture_on_a_mesh_with_uvs(rgb_variant, tmp_path):
     srgb200 = ((200 / 255 + 0.055) / 1.055) ** 2.4  # 8-bit texture images are sRGB-decoded
     assert np.abs(a.max(0)[[0, 2]] - srgb200).max() < 0.02  # both colours reach the surface ...
     assert (a[:, 0] > 0.5).mean() > 0.5  # ... mostly red, as the image is
+
+
+def test_spectral_random_rig_draws_led_camera_pairs_per_frame():
+    from msps_render.scene.sample import SceneConfig, sample_scene
+
+    cfg = SceneConfig.model_validate({"mode": "spectral", "spectral": {"random_rig": {}}})
+    specs = [sample_scene(cfg, np.random.default_rng(s)) for s in range(12)]
+    cams = {s.camera_response for s in specs}
+    assert cams == {"Nikon 5100 (NPL)", "Sigma SDMerill (NPL)"}
+    Ms = np.array([s.crosstalk for s in specs])
+    assert np.ptp(Ms[:, 0, 0]) > 0.01  # the effective crosstalk follows the drawn pair
+    peaks = np.array([[float(l.spectrum.split(":")[1]) for l in s.lights] for s in specs])
+    assert ((peaks[:, 0] >= 615) & (peaks[:, 0] <= 645)).all() and ((peaks[:, 2] >= 455) & (peaks[:, 2] <= 475)).all()
+    fixed = SceneConfig.model_validate({"mode": "spectral"})
+    assert sample_scene(fixed, np.random.default_rng(0)).crosstalk == sample_scene(fixed, np.random.default_rng(0)).crosstalk

@@ -261,6 +261,12 @@ def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = 
                                      len(lc.tilts_deg))
     if cfg.mode == "spectral":  # effective crosstalk of the light spectra x camera
         sc = cfg.spectral or SpectralConfig()
+        if sc.random_rig is not None:  # a random LED x camera pair per frame (drawn only when asked)
+            if len(sc.random_rig.peaks_nm) != len(lc.tilts_deg):
+                raise InputError("scene.spectral.random_rig.peaks_nm", f"{len(sc.random_rig.peaks_nm)} peak "
+                                                                       f"ranges for {len(lc.tilts_deg)} lights")
+            leds, cam = sc.random_rig.draw(rng)
+            sc = sc.model_copy(update={"lights": leds, "camera": cam})
         if len(sc.lights) != len(lc.tilts_deg):
             raise InputError("scene.spectral.lights", f"{len(sc.lights)} light spectra for "
                                                       f"{len(lc.tilts_deg)} light tilts")
