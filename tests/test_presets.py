@@ -34,7 +34,9 @@ def test_paper_presets_match_the_paper():
 
 
 TEST_MESH_DIR = "shared/data/meshes"
-UNSEEN = ("unseen-test", "unseen-test-grey", "unseen-robust-env", "unseen-robust-slant")
+UNSEEN = ("unseen-test", "unseen-test-grey", "unseen-robust-env", "unseen-robust-slant",
+          "unseen-test-colour", "unseen-test-texture", "unseen-rig-crosstalk", "unseen-rig-jitter")
+ANALYTIC_UNSEEN = ("unseen-test-colour", "unseen-test-texture", "unseen-rig-crosstalk", "unseen-rig-jitter")
 
 
 @pytest.mark.parametrize("name", [p for p in PRESETS if p not in UNSEEN])
@@ -61,6 +63,10 @@ def test_unseen_presets_use_test_meshes_and_held_out_materials(name):
     if name == "unseen-test-grey":
         assert cfg.scene.materials.families == ["grey"] and cfg.scene.materials.merl_fraction == 0
         assert cfg.scene.materials.min_count == cfg.scene.materials.max_count == 1
+    elif name in ANALYTIC_UNSEEN:  # colour tests: one full-gamut Lambertian material (no measured ones)
+        assert cfg.scene.materials.families == ["diffuse"] and cfg.scene.materials.merl_fraction == 0
+        assert cfg.scene.materials.albedo == "full" and cfg.scene.materials.max_count == 1
+        assert cfg.dataset.seed == load_config("unseen-test-grey").dataset.seed  # the grey test's poses
     else:
         assert cfg.scene.materials.holdout == "test" and cfg.scene.materials.merl_fraction == 1.0
 
