@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# Stage 6 (issue 20, colour and appearance): corpora with the full albedo gamut, textures, measured
+# blends and random rigs; a warm-started fine-tune of v0.4; the colour, texture, rig and real-capture
+# evaluations (docs/reproducing.md "Stage 6").  Resumable: rerun after an interruption and every
+# finished shard, training step and report is kept.  Run from the repository root with ../shared/data
+# beside the checkout (test meshes, DiLiGenT captures).
+# Usage: bash benchmarks/reproduce_colour.sh [DATA_DIR] [RUN_DIR] [MINUTES]
+set -euo pipefail
+DATA=${1:-data}
+RUNS=${2:-runs}
+MINUTES=${3:-90}
+MSPS=${MSPS:-.venv/bin/msps}
+PY=${PY:-.venv/bin/python}
+R="--resume --quiet"
+
+# 1. corpora (procedural shapes only; training-split measured materials only)
+$MSPS render paper-train --out "$DATA/blobs-48" --seed 21 --set dataset.n_shards=48 --workers 2 $R
+$MSPS render train-grey-30 --out "$DATA/train-grey-30" --set dataset.n_shards=64 --workers 2 $R
+$MSPS render train-colour --out "$DATA/train-colour" --workers 2 $R
+$MSPS render train-colour-env --out "$DATA/train-colour-env" --workers 2 $R
+$MSPS render val --out "$DATA/val" --workers 2 $R
+# test sets: the unseen meshes (never training shapes), held-out or analytic materials
+for set in unseen-test unseen-test-grey unseen-test-colour unseen-test-texture unseen-robust-env \
+           unseen-rig-crosstalk unseen-rig-jitter; do
+  $MSPS render $set --out "$DATA/$set" --workers 2 $R
+done
+
+# 2. fine-tune v0.4 on the colour corpora + the grey and blob corpora of stage 5 (BatchNorm statistics
+#    frozen, i.i.d. batches over the whole mix), lr 2e-4 cosine over MINUTES
+resume=""; [ -f "$RUNS/colour/last.pt" ] && resume="--resume"
+$MSPS train cpu --data "$DATA/train-colour" --data "$DATA/train-colour-env" --data "$DATA/train-grey-30" \
+  --data "$DATA/blobs-48" --val "$DATA/val" --init models/dualcue-cpu-v0.4.pt --out "$RUNS/colour" $resume \
+  --set train.freeze_bn=true --set train.shuffle_window=0 --set train.cache=true \
+  --set train.max_minutes=$MINUTES --set train.lr=2e-4 --set train.val_every=500 --set train.val_max_patches=1500
+NEW="$RUNS/colour/last.pt"
+
+# 3. evaluation: v0.5 candidate vs v0.4 vs Lambertian on every unseen set, rigs, real captures
+MODELS=(--model new="$NEW" --model v0.4=models/dualcue-cpu-v0.4.pt)
+$PY benchmarks/unseen_report.py --data "$DATA/unseen-test" --data "$DATA/unseen-test-grey" \
+  --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-texture" "${MODELS[@]}" --out "$RUNS/report-colour"
+for set in unseen-robust-env unseen-rig-crosstalk unseen-rig-jitter; do
+  for m in new:"$NEW" v0.4:models/dualcue-cpu-v0.4.pt; do
+    [ -f "$RUNS/eval-$set-${m%%:*}/metrics.json" ] || \
+      $MSPS eval --data "$DATA/$set" --checkpoint "${m#*:}" --out "$RUNS/eval-$set-${m%%:*}"
+  done
+  [ -f "$RUNS/eval-$set-lambertian/metrics.json" ] || \
+    $MSPS eval --data "$DATA/$set" --method lambertian --out "$RUNS/eval-$set-lambertian"
+done
+[ -f "$RUNS/real/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real" \
+  --checkpoint new="$NEW" --checkpoint v0.4=models/dualcue-cpu-v0.4.pt
