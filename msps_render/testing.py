@@ -17,6 +17,38 @@ def analytic_sphere_normals(width: int, height: int, extent: float, radius: floa
     return n, mask
 
 
+def write_sphere_capture(d, lights, size: int, rng, intensity_range=(0.5, 2.0), mask=None,
+                         with_filenames: bool = True, mask_channels: int = 1) -> dict:
+    """A synthetic, exact DiLiGenT-style capture in folder `d` (created): an orthographic Lambertian
+    sphere of grey albedo varying across x, one 16-bit linear PNG per light (slant, tilt) of random
+    RGB intensity (not divided out, as DiLiGenT), light_directions.txt, light_intensities.txt,
+    filenames.txt (optional) and mask.png.  Returns normal, mask, L, E and the image names."""
+    from pathlib import Path
+
+    from msps_render.calibration import direction_from_slant_tilt
+    from msps_render.io.png16 import to_unorm, write_png
+
+    d = Path(d)
+    d.mkdir(parents=True)
+    n, sphere = analytic_sphere_normals(size, size, 1.05, 1.0)
+    mask = sphere if mask is None else mask(n, sphere)
+    albedo = (0.3 + 0.6 * np.linspace(0, 1, size)[None, :]) * np.ones((size, 1))
+    L = np.array([direction_from_slant_tilt(s, t) for s, t in lights])
+    E = rng.uniform(*intensity_range, size=(len(L), 3))
+    imgs = [albedo[..., None] * np.clip(n @ l, 0, None)[..., None] * e[None, None, :] for l, e in zip(L, E)]
+    top = max(float(i.max()) for i in imgs)
+    names = [f"{k + 1:03d}.png" for k in range(len(L))]
+    for name, img in zip(names, imgs):
+        write_png(d / name, to_unorm(img / top))  # 16-bit linear, one exposure for all
+    (d / "light_directions.txt").write_text("".join(f"{x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in L))
+    (d / "light_intensities.txt").write_text("".join(f"{r:.6f} {g:.6f} {b:.6f}\n" for r, g, b in E))
+    if with_filenames:
+        (d / "filenames.txt").write_text("".join(nm + "\n" for nm in names))
+    m8 = (mask * 255).astype(np.uint8)
+    write_png(d / "mask.png", np.repeat(m8[..., None], 3, axis=-1) if mask_channels == 3 else m8)
+    return {"normal": n, "mask": mask, "L": L, "E": E, "names": names}
+
+
 def corrupt_patch_chunk(shard, chunk: int) -> None:
     """Overwrite 16 bytes in the middle of compressed chunk `chunk` of a shard's patch images:
     the file still opens, and reading that chunk fails (what a bad disk block looks like)."""

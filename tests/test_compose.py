@@ -14,8 +14,7 @@ import pytest
 
 from cli_helpers import cli, one_line_error
 from msps_render.errors import InputError
-from msps_render.io.png16 import to_unorm, write_png
-from msps_render.testing import analytic_sphere_normals
+from msps_render.testing import write_sphere_capture
 from msps_render.scene.lights import direction_from_slant_tilt
 
 # (slant, tilt): three near the paper's layout (30 deg; 0/120/240), the rest decoys
@@ -26,24 +25,8 @@ SIZE = 64
 
 
 def make_capture(d: Path, lights=LIGHTS, seed=0, with_filenames=True) -> dict:
-    rng = np.random.default_rng(seed)
-    d.mkdir(parents=True)
-    n, mask = analytic_sphere_normals(SIZE, SIZE, 1.05, 1.0)
-    xs = np.linspace(0, 1, SIZE)[None, :]
-    albedo = (0.3 + 0.6 * xs) * np.ones((SIZE, 1))  # grey, varying across the image
-    L = np.array([direction_from_slant_tilt(s, t) for s, t in lights])
-    E = rng.uniform(0.5, 2.0, size=(len(L), 3))  # RGB intensity of each light
-    imgs = [albedo[..., None] * np.clip(n @ l, 0, None)[..., None] * e[None, None, :] for l, e in zip(L, E)]
-    top = max(float(i.max()) for i in imgs)
-    names = [f"{k + 1:03d}.png" for k in range(len(L))]
-    for name, img in zip(names, imgs):
-        write_png(d / name, to_unorm(img / top))  # 16-bit linear, one exposure for all
-    (d / "light_directions.txt").write_text("".join(f"{x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in L))
-    (d / "light_intensities.txt").write_text("".join(f"{r:.6f} {g:.6f} {b:.6f}\n" for r, g, b in E))
-    if with_filenames:
-        (d / "filenames.txt").write_text("".join(nm + "\n" for nm in names))
-    write_png(d / "mask.png", (mask * 255).astype(np.uint8))
-    return {"normal": n, "mask": mask, "L": L, "E": E}
+    return write_sphere_capture(d, lights, SIZE, np.random.default_rng(seed), (0.5, 2.0),
+                                with_filenames=with_filenames)
 
 
 @pytest.mark.parametrize("crosstalk", [None, np.eye(3), np.array([[0.7, 0.2, 0.1], [0.1, 0.8, 0.1],

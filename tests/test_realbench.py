@@ -16,9 +16,8 @@ import numpy as np
 import pytest
 
 from cli_helpers import cli, one_line_error
-from msps_render.io.png16 import to_unorm, write_png
-from msps_render.scene.lights import direction_from_slant_tilt
-from msps_render.testing import analytic_sphere_normals
+from msps_render.io.png16 import write_png
+from msps_render.testing import write_sphere_capture
 
 # (slant, tilt): 1, 3, 5 are near the paper's layout (30 deg; 0/120/240), the rest decoys
 LIGHTS = [(15, 60), (28, 4), (45, 10), (31, 118), (42, 250), (29, 243)]
@@ -29,25 +28,11 @@ DILIGENT = Path(__file__).resolve().parents[2] / "shared" / "data" / "diligent"
 
 
 def make_capture(d: Path, seed: int = 0, gt: str = "mat") -> dict:
-    rng = np.random.default_rng(seed)
-    d.mkdir(parents=True)
-    n, sphere = analytic_sphere_normals(SIZE, SIZE, 1.05, 1.0)
     # the mask is the central cap (normal slant < ~53 deg): every light near the layout (slant <= 31 deg)
     # lights all of it (n . l >= cos 84 deg > 0), so the images follow the unshadowed Lambertian model exactly
-    mask = sphere & (n[..., 2] > 0.6)
-    xs = np.linspace(0, 1, SIZE)[None, :]
-    albedo = (0.3 + 0.6 * xs) * np.ones((SIZE, 1))
-    L = np.array([direction_from_slant_tilt(s, t) for s, t in LIGHTS])
-    E = rng.uniform(0.6, 1.8, size=(len(L), 3))  # RGB intensity of each light (DiLiGenT: not divided out)
-    imgs = [albedo[..., None] * np.clip(n @ l, 0, None)[..., None] * e[None, None, :] for l, e in zip(L, E)]
-    top = max(float(i.max()) for i in imgs)
-    names = [f"{k + 1:03d}.png" for k in range(len(L))]
-    for name, img in zip(names, imgs):
-        write_png(d / name, to_unorm(img / top))  # 16-bit linear, one exposure for all
-    (d / "light_directions.txt").write_text("".join(f"{x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in L))
-    (d / "light_intensities.txt").write_text("".join(f"{r:.6f} {g:.6f} {b:.6f}\n" for r, g, b in E))
-    (d / "filenames.txt").write_text("".join(nm + "\n" for nm in names))
-    write_png(d / "mask.png", np.repeat((mask * 255).astype(np.uint8)[..., None], 3, axis=-1))  # 3 channels
+    cap = write_sphere_capture(d, LIGHTS, SIZE, np.random.default_rng(seed), (0.6, 1.8),
+                               mask=lambda n, sphere: sphere & (n[..., 2] > 0.6), mask_channels=3)
+    n, mask, L, E, names = cap["normal"], cap["mask"], cap["L"], cap["E"], cap["names"]
     gtn = n.copy()
     gtn[HOLE] = 0.0
     assert mask[HOLE].all()
