@@ -8,7 +8,7 @@
 set -euo pipefail
 DATA=${1:-data}
 RUNS=${2:-runs}
-MINUTES=${3:-90}
+MINUTES=${3:-80}
 MSPS=${MSPS:-.venv/bin/msps}
 PY=${PY:-.venv/bin/python}
 R="--resume --quiet"

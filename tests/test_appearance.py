@@ -288,3 +288,26 @@ def test_spectral_random_rig_draws_led_camera_pairs_per_frame():
     assert ((peaks[:, 0] >= 615) & (peaks[:, 0] <= 645)).all() and ((peaks[:, 2] >= 455) & (peaks[:, 2] <= 475)).all()
     fixed = SceneConfig.model_validate({"mode": "spectral"})
     assert sample_scene(fixed, np.random.default_rng(0)).crosstalk == sample_scene(fixed, np.random.default_rng(0)).crosstalk
+
+
+def test_subdivision_splits_only_long_edges_without_cracks():
+    """Long edges are split at shared midpoints: the surface (area, watertightness) is unchanged,
+    no edge is left longer than max_edge, and a mesh that is already fine is left alone."""
+    import trimesh
+
+    from msps_render.render.textures import subdivide_to_edge
+    from msps_render.scene.geometry import TriMesh
+
+    box = trimesh.creation.box(extents=(1.0, 0.6, 0.3))  # 12 big faces, edges up to 1.17
+    m = TriMesh(box.vertices.astype(np.float32), box.faces.astype(np.uint32),
+                box.vertex_normals.astype(np.float32))
+    m2 = subdivide_to_edge(m, 0.05)
+    e = np.linalg.norm(m2.vertices[m2.faces[:, [1, 2, 0]]] - m2.vertices[m2.faces], axis=-1)
+    assert e.max() <= 0.05 + 1e-6
+    t2 = trimesh.Trimesh(m2.vertices, m2.faces, process=True)  # merges the shared midpoints
+    assert t2.is_watertight and abs(t2.area - box.area) < 1e-5
+    assert np.allclose(np.linalg.norm(m2.normals, axis=1), 1.0, atol=1e-5)
+    fine = subdivide_to_edge(m2, 0.05)
+    assert len(fine.faces) == len(m2.faces)  # nothing left to split
+    capped = subdivide_to_edge(m, 0.001, max_faces=5000)
+    assert len(capped.faces) <= 5000

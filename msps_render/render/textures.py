@@ -129,21 +129,62 @@ def vertex_attributes(m: MaterialSpec, points: np.ndarray, normals: np.ndarray,
     return {ALBEDO: albedo, WEIGHT: weight, ROUGHNESS: rough}
 
 
-def subdivide_to_edge(mesh: TriMesh, max_edge: float, max_faces: int = MAX_FACES) -> TriMesh:
-    """Midpoint-subdivide the whole mesh until its longest edge is <= max_edge (or one more
-    level would pass max_faces).  Whole-mesh levels keep it crack-free; normals and UVs are
-    interpolated at the midpoints (normals renormalised)."""
-    from trimesh.remesh import subdivide
+def _split_pass(v: np.ndarray, f: np.ndarray, attrs: dict, max_edge: float):
+    """One crack-free refinement pass: every edge longer than max_edge gets its midpoint (shared
+    by both faces on it), and each face is re-triangulated by how many of its edges were split
+    (1 -> 2, 2 -> 3, 3 -> 4 triangles, winding kept).  Returns (v, f, attrs, any split)."""
+    F = len(f)
+    i, j = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)  # edge k of face t is row 3t + k
+    lo, hi = np.minimum(i, j), np.maximum(i, j)
+    long_edge = np.linalg.norm(v[i] - v[j], axis=1) > max_edge
+    if not long_edge.any():
+        return v, f, attrs, False
+    key = lo[long_edge] * len(v) + hi[long_edge]  # one int64 per undirected edge: fast unique
+    uniq, inv = np.unique(key, return_inverse=True)
+    mid_of_row = np.full(len(i), -1, np.int64)
+    mid_of_row[long_edge] = len(v) + inv.reshape(-1)
+    ends = np.stack([uniq // len(v), uniq % len(v)], 1)
+    v = np.concatenate([v, 0.5 * (v[ends[:, 0]] + v[ends[:, 1]])])
+    attrs = {k: np.concatenate([a, 0.5 * (a[ends[:, 0]] + a[ends[:, 1]])]) for k, a in attrs.items()}
+    m = mid_of_row.reshape(F, 3)  # midpoint of edges (01, 12, 20) per face, -1 = kept
+    split = m >= 0
+    # rotate each face so its split edges come first: 1 split -> edge 01; 2 splits -> 01 and 12
+    rot = np.zeros(F, np.int64)
+    one, two = split.sum(1) == 1, split.sum(1) == 2
+    rot[one] = np.argmax(split[one], 1)
+    rot[two] = (np.argmin(split[two], 1) + 1) % 3
+    idx = (np.arange(3)[None, :] + rot[:, None]) % 3
+    fr = np.take_along_axis(f, idx, 1)
+    mr = np.take_along_axis(m, idx, 1)
+    a, b, c = fr.T
+    m01, m12, m20 = mr.T
+    n_split = split.sum(1)
+    out = [fr[n_split == 0]]
+    s1 = n_split == 1
+    out += [np.stack([a, m01, c], 1)[s1], np.stack([m01, b, c], 1)[s1]]
+    s2 = n_split == 2
+    out += [np.stack([a, m01, m12], 1)[s2], np.stack([m01, b, m12], 1)[s2], np.stack([a, m12, c], 1)[s2]]
+    s3 = n_split == 3
+    out += [np.stack([a, m01, m20], 1)[s3], np.stack([m01, b, m12], 1)[s3], np.stack([m20, m12, c], 1)[s3],
+            np.stack([m01, m12, m20], 1)[s3]]
+    return v, np.concatenate(out), attrs, True
 
+
+def subdivide_to_edge(mesh: TriMesh, max_edge: float, max_faces: int = MAX_FACES) -> TriMesh:
+    """Split long edges until none is longer than max_edge (or the mesh would pass max_faces).
+
+    Only long edges are split (a dense scan keeps its small triangles; a prism's big faces get
+    small ones), each at its midpoint shared by both faces, so no crack opens; normals and UVs
+    are interpolated at the midpoints (normals renormalised)."""
     v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
     attrs = {"n": np.asarray(mesh.normals, np.float64)}
     if mesh.uv is not None:
         attrs["uv"] = np.asarray(mesh.uv, np.float64)
-    while len(f) * 4 <= max_faces:
-        e = v[f[:, [1, 2, 0]]] - v[f]
-        if np.sqrt((e ** 2).sum(-1)).max() <= max_edge:
+    while len(f) < max_faces:
+        v2, f2, attrs2, changed = _split_pass(v, f, attrs, max_edge)
+        if not changed or len(f2) > max_faces:
             break
-        v, f, attrs = subdivide(v, f, vertex_attributes=attrs)
+        v, f, attrs = v2, f2, attrs2
     n = attrs["n"] / np.maximum(np.linalg.norm(attrs["n"], axis=1, keepdims=True), 1e-12)
     uv = attrs["uv"].astype(np.float32) if "uv" in attrs else None
     return TriMesh(v.astype(np.float32), f.astype(np.uint32), n.astype(np.float32), uv)
