@@ -109,22 +109,35 @@ def n_whole_frames(h) -> int:
     return len(h[K.FRAME_IMAGE]) if has_whole_frames(h) else 0
 
 
-def iter_whole_frames(path: str | Path) -> Iterator[WholeFrame]:
-    """The whole frames of a shard written with `store_frames = true`."""
+def has_per_light(h) -> bool:
+    """True for shards written with store_per_light (older shards have no per-light images)."""
+    return K.FRAME_PER_LIGHT in h
+
+
+def iter_whole_frames(path: str | Path, per_light: bool = False) -> Iterator[WholeFrame]:
+    """The whole frames of a shard written with `store_frames = true`; `per_light=True` also reads
+    the stored per-light and environment images (None where the shard has none; the environment
+    image is 0 in frames without one)."""
     path = Path(path)
-    with open_shard(path) as h:
+    with shard_errors(path), open_shard(path) as h:
         if not has_whole_frames(h):
             raise InputError(path, "shard has no whole frames (render the preset with store_frames = true)")
         objs = h[K.FRAME_OBJECT].asstr()[()]
         mats = h[K.FRAME_MATERIALS].asstr()[()]
         conds = h[K.FRAME_CONDITION].asstr()[()]
+        env_ratio = h[K.FRAME_ENV_RATIO][()]
         appearance = K.FRAME_ALBEDO in h  # shards before v0.5 have none
+        lights = per_light and has_per_light(h)
+        env = lights and K.FRAME_ENV_IMAGE in h
         for i in range(n_whole_frames(h)):
             image, normal, mask = read_whole_frame(h, i)
             yield WholeFrame(image, normal, mask, h[K.FRAME_LIGHT_DIRS][i], h[K.FRAME_CROSSTALK][i],
                              str(objs[i]), str(mats[i]), str(conds[i]), path.name, i,
                              h[K.FRAME_ALBEDO][i].astype(np.float32) if appearance else None,
-                             h[K.FRAME_BLEND][i].astype(np.float32) if appearance else None)
+                             h[K.FRAME_BLEND][i].astype(np.float32) if appearance else None,
+                             h[K.FRAME_PER_LIGHT][i].astype(np.float32) if lights else None,
+                             h[K.FRAME_ENV_IMAGE][i].astype(np.float32) if env else None,
+                             float(env_ratio[i]))
 
 
 def read_digests(path: str | Path) -> dict[str, str]:

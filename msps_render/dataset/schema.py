@@ -39,6 +39,8 @@ FRAME_NORMAL = "frames/normal"
 FRAME_MASK = "frames/mask"
 FRAME_ALBEDO = "frames/albedo"  # (F, H, W, 3) float16, whole frames only: diffuse albedo (0 = none)
 FRAME_BLEND = "frames/blend"  # (F, H, W) float16, whole frames only: measured-blend weight
+FRAME_PER_LIGHT = "frames/per_light"  # (F, K, H, W, 3) image_dtype, store_per_light: light k alone
+FRAME_ENV_IMAGE = "frames/env_image"  # (F, H, W, 3) image_dtype, store_per_light: environment alone
 FRAME_SCENE_JSON = "frames/scene_json"  # utf-8 strings
 FRAME_OBJECT = "frames/object"
 FRAME_MATERIALS = "frames/materials"
@@ -107,6 +109,8 @@ class FrameRecord:
     mask: np.ndarray | None = None
     albedo: np.ndarray | None = None
     blend: np.ndarray | None = None
+    per_light: np.ndarray | None = None  # (K, H, W, 3) clean radiance of light k alone (store_per_light)
+    env_image: np.ndarray | None = None  # (H, W, 3) the environment light alone; None: no environment
 
 
 @dataclass
@@ -133,3 +137,6 @@ class WholeFrame:
     index: int
     albedo: np.ndarray | None = None  # (H, W, 3) ground-truth diffuse albedo (shards from v0.5 on)
     blend: np.ndarray | None = None  # (H, W) measured-blend weight
+    per_light: np.ndarray | None = None  # (K, H, W, 3) light k alone (shards with store_per_light)
+    env_image: np.ndarray | None = None  # (H, W, 3) environment alone (None: none, or not stored)
+    env_ratio: float = 0.0

@@ -63,9 +63,22 @@ def shard_arrays(content: ShardContent, image_dtype: str = "float16", normal_dty
         if all(f.albedo is not None for f in fr):
             arrays[K.FRAME_ALBEDO] = np.stack([f.albedo for f in fr]).astype(np.float16)
             arrays[K.FRAME_BLEND] = np.stack([f.blend for f in fr]).astype(np.float16)
+        if all(f.per_light is not None for f in fr):
+            arrays[K.FRAME_PER_LIGHT] = _radiance(np.stack([f.per_light for f in fr]), image_dtype, "per-light")
+            if any(f.env_image is not None for f in fr):  # zeros for the frames without an environment
+                arrays[K.FRAME_ENV_IMAGE] = _radiance(np.stack(
+                    [f.env_image if f.env_image is not None else np.zeros_like(f.image) for f in fr]),
+                    image_dtype, "environment")
     strings = {K.FRAME_SCENE_JSON: [f.scene_json for f in fr], K.FRAME_OBJECT: [f.object for f in fr],
                K.FRAME_MATERIALS: [f.materials for f in fr], K.FRAME_CONDITION: [f.condition for f in fr]}
     return arrays, strings
+
+
+def _radiance(a: np.ndarray, dtype: str, what: str) -> np.ndarray:
+    out = a.astype(dtype)
+    if dtype == "float16" and not np.isfinite(out).all():
+        raise ValueError(f"{what} radiance exceeds float16 range; use image_dtype='float32'")
+    return out
 
 
 def write_shard(path: str | Path, content: ShardContent, compression: str = "lzf",

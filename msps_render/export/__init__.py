@@ -15,26 +15,31 @@ from msps_render.dataset.manifest import SHARD_DIR, read_manifest
 from msps_render.errors import InputError
 from msps_render.export import diligent, images, psfcn  # noqa: F401  (each registers its format)
 from msps_render.export.formats import FORMATS, ExportFormat, get_format, register  # noqa: F401
-from msps_render.export.source import (ExportFrame, check_has_frames, dataset_variant, iter_export_frames,
-                                       write_json)
+from msps_render.export.source import (PER_LIGHT_CONTENTS, PER_LIGHT_SOURCES, ExportFrame, check_has_frames,
+                                       dataset_variant, iter_export_frames, stored_per_light, write_json)
 from msps_render.io.staging import check_new_out, staged_dir
 
 
 def export_dataset(root: str | Path, fmt: str, out: str | Path, rerender: bool = False,
                    progress: Callable[[int, ExportFrame], None] | None = None) -> dict:
-    """Export every whole frame of dataset `root` as `fmt` into the new directory `out`; returns the index."""
+    """Export every whole frame of dataset `root` as `fmt` into the new directory `out`; returns the index.
+
+    Per-light images come from the shards when stored (`store_per_light`), else from `rerender`;
+    png16/exr write them too when they are at hand, the per-light layouts cannot do without."""
     root, out = Path(root), Path(out)
     f = get_format(fmt)
     check_has_frames(root)  # also: not a dataset, incomplete, unreadable shard
-    if f.per_light and not rerender:
-        first = sorted((root / SHARD_DIR).glob("shard-*.h5"))[0]
-        raise InputError(first, f"shards store no per-light images, which the {f.name} layout needs; add "
-                                "--rerender to re-render them from the scenes stored in the shards (needs Mitsuba)")
+    missing = stored_per_light(root)
+    if f.per_light and missing is not None and not rerender:
+        raise InputError(missing, f"shard stores no per-light images, which the {f.name} layout needs; add "
+                                  "--rerender to re-render them from the scenes stored in the shards (needs "
+                                  "Mitsuba), or render with dataset.storage.store_per_light = true")
+    lights = f.per_light or rerender or missing is None
     check_new_out(out)
     with staged_dir(out) as stage:
         infos = []
-        variant = dataset_variant(root) if f.per_light else None
-        for i, ef in enumerate(iter_export_frames(root, per_light=f.per_light, variant=variant)):
+        variant = dataset_variant(root) if rerender else None
+        for i, ef in enumerate(iter_export_frames(root, per_light=lights, variant=variant, rerender=rerender)):
             info = ef.info()
             info.update(f.write_frame(ef, stage))
             infos.append(info)
@@ -43,8 +48,12 @@ def export_dataset(root: str | Path, fmt: str, out: str | Path, rerender: bool =
         if f.finish:
             f.finish(stage, infos)
         m = read_manifest(root) or {}
+        per = None
+        if lights:
+            per = {"source": PER_LIGHT_SOURCES["re-rendered" if rerender else "stored"],
+                   "contents": PER_LIGHT_CONTENTS, "files": f.light_files}
         index = {"format": f.name, "dataset": str(root.resolve()), "config_hash": m.get("config_hash"),
-                 "n_frames": len(infos), "conventions": CONVENTIONS, "frames": infos}
+                 "n_frames": len(infos), "conventions": CONVENTIONS, "per_light": per, "frames": infos}
         write_json(stage / "export.json", index)
     return index
 

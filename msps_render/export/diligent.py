@@ -2,6 +2,8 @@
 
     OUT/objects.txt, OUT/filenames.txt       folder names; image names (as DiLiGenT loaders read them)
     OUT/<frame-id>PNG/001.png 002.png 003.png  16-bit linear RGB, one per light (no environment light)
+    OUT/<frame-id>PNG/environment.png        16-bit, the environment light alone (frames with one; not
+                                             in filenames.txt; its own exposure `env_png_scale`)
     OUT/<frame-id>PNG/filenames.txt          the image names
     OUT/<frame-id>PNG/light_directions.txt   row k: x y z toward light k (camera frame, as DiLiGenT)
     OUT/<frame-id>PNG/light_intensities.txt  row k: R G B of light k on the images' scale
@@ -49,7 +51,17 @@ def write_frame(ef: ExportFrame, root: Path) -> dict:
     write_png(d / "Normal_gt.png", encode_normal(n, ef.mask))
     savemat(d / "Normal_gt.mat", {"Normal_gt": n}, do_compression=True)
     (d / "normal.txt").write_text(fmt_rows(n.reshape(-1, 3)))
-    return {"dir": d.name, "png_scale": s}
+    return {"dir": d.name, "png_scale": s, **write_environment(ef, d, np.uint16)}
+
+
+def write_environment(ef: ExportFrame, d: Path, dtype) -> dict:
+    """environment.png on its own exposure (the sky it shows around the object outshines the lights)."""
+    if ef.env_image is None:
+        return {}
+    top = float(ef.env_image.max())
+    s = 1.0 / top if top > 0 else 1.0
+    write_png(d / "environment.png", to_unorm(ef.env_image * s, dtype))
+    return {"environment": "environment.png", "env_png_scale": s}
 
 
 def finish(root: Path, infos: list[dict]) -> None:
@@ -59,4 +71,7 @@ def finish(root: Path, infos: list[dict]) -> None:
 
 register(ExportFormat("diligent", "DiLiGenT pmsData: per-light 16-bit PNGs, light_directions.txt, "
                                   "light_intensities.txt, mask.png, Normal_gt.png/.mat, normal.txt",
-                      write_frame, finish, per_light=True), aliases=("pmsdata",))
+                      write_frame, finish, per_light=True,
+                      light_files="<id>PNG/001.png ... 003.png (light k on png_scale), <id>PNG/environment.png "
+                                  "(frames with an environment light, on env_png_scale; not in filenames.txt)"),
+         aliases=("pmsdata",))

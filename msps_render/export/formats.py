@@ -15,7 +15,8 @@ class ExportFormat:
     help: str
     write_frame: Callable[[ExportFrame, Path], dict]  # writes one frame under the export root, returns info
     finish: Callable[[Path, list[dict]], None] | None = None  # index files, after every frame
-    per_light: bool = False  # needs one image per light (shards do not store them: --rerender)
+    per_light: bool = False  # needs one image per light (stored with store_per_light, else --rerender)
+    light_files: str = ""  # where the per-light and environment images go (export.json says)
 
 
 FORMATS: dict[str, ExportFormat] = {}

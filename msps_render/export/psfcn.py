@@ -8,6 +8,8 @@
     OUT/Images/<shape>/<mtrl>/l_000.png ...     8-bit linear RGB, one per light, divided by the light's
                                                 RGB (PS-FCN's data have unit white lights)
     OUT/Images/<shape>/<mtrl>/light_directions.txt, light_intensities.txt  (extra, DiLiGenT-style)
+    OUT/Images/<shape>/<mtrl>/environment.png   8-bit, the environment light alone (frames with one; not
+                                                in the light list; not white-balanced, own `env_png_scale`)
 
 Image k is per_light[k] / light_rgb[k] (per channel) times one exposure per
 frame (`png_scale`, brightest -> 255); light_intensities.txt holds png_scale in
@@ -20,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from msps_render.export.formats import ExportFormat, register
-from msps_render.export.diligent import fmt_rows
+from msps_render.export.diligent import fmt_rows, write_environment
 from msps_render.io.png16 import encode_normal, to_unorm, write_png
 from msps_render.export.source import ExportFrame, safe_name
 
@@ -50,7 +52,7 @@ def write_frame(ef: ExportFrame, root: Path) -> dict:
     (md / "light_intensities.txt").write_text(fmt_rows(np.full((len(NAMES), 3), s)))
     write_png(sd / f"{shape}_normal.png", encode_normal(ef.normal, ef.mask, np.uint8))
     write_png(sd / "mask.png", (ef.mask * 255).astype(np.uint8))
-    return {"dir": f"Images/{shape}/{mtrl}", "png_scale": s}
+    return {"dir": f"Images/{shape}/{mtrl}", "png_scale": s, **write_environment(ef, md, np.uint8)}
 
 
 def finish(root: Path, infos: list[dict]) -> None:
@@ -58,4 +60,7 @@ def finish(root: Path, infos: list[dict]) -> None:
 
 
 register(ExportFormat("psfcn", "PS-FCN synthetic layout: Images/<shape>/<mtrl>/l_*.png + light list, "
-                               "<shape>_normal.png, train_mtrl.txt", write_frame, finish, per_light=True))
+                               "<shape>_normal.png, train_mtrl.txt", write_frame, finish, per_light=True,
+                      light_files="Images/<id>/<mtrl>/l_000.png ... l_002.png (light k / its RGB, on png_scale), "
+                                  "Images/<id>/<mtrl>/environment.png (frames with an environment light, on "
+                                  "env_png_scale; not in the light list)"))

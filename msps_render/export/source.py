@@ -1,11 +1,12 @@
 """The frames an export writes: whole frames of a dataset, with their lights and (optionally) per-light images.
 
 Whole frames come from `msps_render.dataset.iter_whole_frames` (datasets rendered with
-`store_frames = true`).  Shards keep no per-light images; the formats that need
-them (PS-FCN, DiLiGenT) get them by re-rendering each frame from the SceneSpec
-stored beside it (`rerender=True`, Mitsuba needed): the per-light renders sum
-to the stored image (without the environment light and any sensor model), and
-`per_light_deviation` says by how much they differ.
+`store_frames = true`).  Per-light images (and the environment-only image) come from
+the shards when they were rendered with `store_per_light = true`, or else by
+re-rendering each frame from the SceneSpec stored beside it (`rerender=True`,
+Mitsuba needed; the only way for older shards).  Either way they sum, with the
+environment image, to the stored image (up to float16 rounding when stored, and
+without any sensor model), and `per_light_deviation` says by how much they differ.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import numpy as np
 
 from msps_render.dataset import (iter_whole_frames, load_manifest, open_shard, read_frame_scenes, read_manifest,
                                  shard_errors)
-from msps_render.dataset.reader import has_whole_frames
+from msps_render.dataset.reader import has_per_light, has_whole_frames
 from msps_render.errors import InputError
 from msps_render.render import render_frame
 from msps_render.render.variant import mitsuba_info
@@ -41,17 +42,29 @@ class ExportFrame:
     shard: str
     index: int
     scene_json: str
+    env_ratio: float = 0.0  # environment light (0: none)
     per_light: np.ndarray | None = None  # (K, H, W, 3) float32 linear radiance, one image per light
-    per_light_deviation: float | None = None  # max |sum(per_light) - image| / max(image) over the mask
+    env_image: np.ndarray | None = None  # (H, W, 3) the environment light alone (None: no environment)
+    per_light_source: str | None = None  # "stored" (frames/per_light) or "re-rendered" (frames/scene_json)
+    per_light_deviation: float | None = None  # max |sum(per_light) + env - image| / max(image) over the mask
 
     def info(self) -> dict:
         d = {"id": self.id, "object": self.object, "materials": self.materials, "condition": self.condition,
              "shard": self.shard, "frame": self.index, "height": int(self.mask.shape[0]),
-             "width": int(self.mask.shape[1])}
-        if self.per_light_deviation is not None:
-            d["per_light_source"] = "re-rendered from frames/scene_json"
+             "width": int(self.mask.shape[1]), "env_ratio": round(float(self.env_ratio), 6)}
+        if self.per_light_source is not None:
+            d["per_light_source"] = PER_LIGHT_SOURCES[self.per_light_source]
             d["per_light_max_rel_deviation"] = float(self.per_light_deviation)
+            d["environment_image"] = self.env_image is not None
         return d
+
+
+PER_LIGHT_SOURCES = {"stored": "stored in the shard (frames/per_light, frames/env_image)",
+                     "re-rendered": "re-rendered from frames/scene_json"}
+PER_LIGHT_CONTENTS = ("image k: the linear radiance light k alone makes (clean: before any sensor model). "
+                      "The environment light is in none of them: where a frame has one (env_ratio > 0) its "
+                      "image is written apart (environment.png / environment.exr), so image = sum_k image_k "
+                      "+ environment (+ the sensor's noise, if the dataset has a sensor model)")
 
 
 def safe_name(s: str) -> str:
@@ -70,35 +83,67 @@ def check_has_frames(root: str | Path) -> None:
                                        "dataset.storage.store_frames=true)")
 
 
+def stored_per_light(root: str | Path) -> Path | None:
+    """None when every shard of the dataset stores per-light images, else the first shard without."""
+    m = load_manifest(root)
+    for e in m.shards_of():
+        path = m.shard_path(e.name)
+        with shard_errors(path), open_shard(path) as h:
+            if not has_per_light(h):
+                return path
+    return None
+
+
 def iter_export_frames(root: str | Path, per_light: bool = False, variant: str | None = None,
-                       ) -> Iterator[ExportFrame]:
+                       rerender: bool = False) -> Iterator[ExportFrame]:
+    """Every whole frame; `per_light`: with its per-light images, from the shards or (`rerender`) re-rendered."""
     m = load_manifest(root)
     n = 0
     for e in m.shards_of():
         light_rgb, scenes = read_frame_scenes(m.shard_path(e.name))
-        for fr in iter_whole_frames(m.shard_path(e.name)):
+        for fr in iter_whole_frames(m.shard_path(e.name), per_light=per_light and not rerender):
             ef = ExportFrame(id=f"{n:04d}-{safe_name(fr.object)}", image=np.asarray(fr.image, np.float32),
                              normal=np.asarray(fr.normal, np.float32), mask=np.asarray(fr.mask, bool),
                              light_dirs=np.asarray(fr.light_dirs, np.float64), crosstalk=np.asarray(fr.crosstalk),
                              light_rgb=np.asarray(light_rgb[fr.index], np.float64), object=fr.object,
                              materials=fr.materials, condition=fr.condition, shard=fr.shard, index=fr.index,
-                             scene_json=scenes[fr.index])
-            if per_light:
-                ef.per_light, ef.per_light_deviation = rerender_per_light(ef, variant)
+                             scene_json=scenes[fr.index], env_ratio=fr.env_ratio)
+            if per_light and rerender:
+                ef.per_light, ef.env_image = rerender_per_light(ef, variant)
+                ef.per_light_source = "re-rendered"
+            elif per_light:
+                if fr.per_light is None:
+                    raise InputError(m.shard_path(e.name), "shard stores no per-light images; export with --rerender")
+                ef.per_light = fr.per_light
+                ef.env_image = fr.env_image if fr.env_image is not None and fr.env_ratio > 0 else None
+                ef.per_light_source = "stored"
+            if ef.per_light is not None:
+                _check_lights(ef)
+                ef.per_light_deviation = per_light_deviation(ef)
             n += 1
             yield ef
 
 
-def rerender_per_light(ef: ExportFrame, variant: str | None = None) -> tuple[np.ndarray, float]:
+def _check_lights(ef: ExportFrame) -> None:
+    if ef.per_light.shape[0] != 3:
+        raise InputError(f"{ef.shard}: frame {ef.index}", f"scene has {ef.per_light.shape[0]} lights, export needs 3")
+
+
+def per_light_deviation(ef: ExportFrame) -> float:
+    """max |sum(per_light) + env - image| over the mask, relative to the brightest object pixel."""
+    m = ef.mask
+    if not m.any():
+        return 0.0
+    total = ef.per_light.sum(0) + (ef.env_image if ef.env_image is not None else 0.0)
+    return float(np.abs(total - ef.image)[m].max() / max(float(ef.image[m].max()), 1e-12))
+
+
+def rerender_per_light(ef: ExportFrame, variant: str | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """(per-light images, environment-only image or None) of a frame, re-rendered from its SceneSpec."""
     spec = SceneSpec.from_json(ef.scene_json, f"{ef.shard}: frame {ef.index}")
     fr = render_frame(spec, variant=variant, per_light=True)
-    per = np.asarray(fr.per_light, np.float32)
-    if per.shape[0] != 3:
-        raise InputError(f"{ef.shard}: frame {ef.index}", f"scene has {per.shape[0]} lights, export needs 3")
-    m = ef.mask
-    ref = float(ef.image[m].max()) if m.any() else 1.0
-    dev = float(np.abs(per.sum(0) - ef.image)[m].max() / max(ref, 1e-12)) if m.any() else 0.0
-    return per, dev
+    env = None if fr.env_image is None else np.asarray(fr.env_image[..., :3], np.float32)
+    return np.asarray(fr.per_light, np.float32), env
 
 
 def dataset_variant(root: str | Path) -> str | None:

@@ -35,6 +35,16 @@ class StorageConfig(StrictModel):
     image_dtype: Literal["float16", "float32"] = Field("float16", description="stored dtype of patch images")
     normal_dtype: Literal["float16", "float32"] = Field("float16", description="stored dtype of patch normals")
     store_frames: bool = Field(False, description="also keep whole frames (test sets)")
+    store_per_light: bool = Field(False, description="with store_frames: also keep each whole frame's "
+                                                     "per-light images (light k alone) and its environment-"
+                                                     "only image, so per-light exports need no --rerender "
+                                                     "(about 3x the whole-frame disk)")
+
+    @model_validator(mode="after")
+    def _per_light_needs_frames(self) -> "StorageConfig":
+        if self.store_per_light and not self.store_frames:
+            raise ValueError("store_per_light needs store_frames = true (per-light images are whole frames)")
+        return self
 
 
 class DatasetSection(StrictModel):

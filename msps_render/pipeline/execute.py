@@ -60,7 +60,8 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
                                 frame_index=task.shard_in_condition * d.frames_per_shard + j)
         misses0 = kernel_cache_misses()
         tr = time.perf_counter()
-        frame = render_frame(spec, variant=ws.variant, threads=ws.threads, timer=timer)
+        frame = render_frame(spec, variant=ws.variant, threads=ws.threads, timer=timer,
+                             per_light=d.storage.store_per_light)
         render_s += time.perf_counter() - tr
         sensor = cfg.sensor  # optional sensor model (render/sensor.py), its own noise stream
         if sensor is not None and sensor.enabled:
@@ -86,7 +87,9 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
                 normal=frame.normal if d.storage.store_frames else None,
                 mask=frame.mask if d.storage.store_frames else None,
                 albedo=frame.albedo if d.storage.store_frames else None,
-                blend=frame.blend if d.storage.store_frames else None))
+                blend=frame.blend if d.storage.store_frames else None,
+                per_light=frame.per_light if d.storage.store_per_light else None,
+                env_image=frame.env_image if d.storage.store_per_light else None))
         if timer is not None:
             timer.end_frame()
     P = d.patches.size
