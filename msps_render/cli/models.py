@@ -40,17 +40,22 @@ def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAM
 @clean_errors
 def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)"),
              out: Path = typer.Option(..., help="report directory"),
-             checkpoint: Optional[Path] = typer.Option(None, help="checkpoint (default: models/dualcue-cpu.pt)"),
-             method: str = typer.Option("net", help="net or lambertian"),
+             checkpoint: List[str] = typer.Option([], help="checkpoint PATH or NAME=PATH; repeat to compare "
+                                                  "several (unnamed: net, or scn/pcn for ablations; default: "
+                                                  "models/dualcue-cpu.pt)"),
+             method: List[str] = typer.Option([], help="net (the checkpoints) or lambertian (the baseline); "
+                                              "repeatable: --method lambertian beside --checkpoint compares "
+                                              "both (default: net)"),
              max_patches: Optional[int] = typer.Option(None, help="limit per condition")):
-    """Angular-error statistics, SSIM, per-object table (whole frames), robustness: metrics.json,
+    """Angular-error statistics, SSIM, per-object table (whole frames), robustness, for one method or
+    several compared on the same frames: metrics.json, table.md (every method a column, 95 % CIs),
     error_hist.png, per_object.csv/.png (frames stored), robustness.png (sweeps)."""
-    from msps_render.models.evaluate import evaluate
+    from msps_render.models.evaluate import evaluate, resolve_methods
     from msps_render.models.report import summary_lines
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out, "report")
-    r = evaluate(data, out, checkpoint=checkpoint, method=method, max_patches=max_patches)
+    r = evaluate(data, out, max_patches=max_patches, methods=resolve_methods(checkpoint, method))
     for line in summary_lines(r):
         typer.echo(line)
     typer.echo("wrote " + ", ".join(r["files"]))

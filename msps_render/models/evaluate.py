@@ -1,16 +1,26 @@
 """Evaluation like the paper: angular-error statistics, SSIM, per-object tables, robustness.
 
-Patch-level metrics pool every object pixel of every patch. Whole-frame test
-sets (stored with `store_frames = true`) are also predicted image by image
-(tiles blended, `predict.predict_image`) for the per-object table.  With a
-sweep (several conditions), MAE per condition and the paper's fluctuation
-ratio alpha = |chi - chi'| / chi against the reference condition are reported
-and plotted.
+Several methods (checkpoints and the Lambertian baseline) are scored on the
+same patches and frames in one pass over the data, so their numbers differ only
+by the method.  Patch-level metrics pool every object pixel of every patch.
+Whole-frame test sets (stored with `store_frames = true`) are also predicted
+image by image (tiles blended, `predict.predict_image`) for the per-object
+table.  With a sweep (several conditions), MAE per condition and the paper's
+fluctuation ratio alpha = |chi - chi'| / chi against the reference condition
+are reported and plotted.
+
+95 % confidence intervals are percentile bootstraps over frames: patches cut
+from one frame share its shape, material and light, so they are resampled
+together (resampling patches would understate the spread).  The resamples are
+seeded and the same for every method (paired), so a method's interval does not
+depend on which other methods ran beside it.
 """
 from __future__ import annotations
 
 import json
+import zlib
 from collections import defaultdict
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +29,16 @@ from msps_render.dataset import Manifest, load_manifest
 from msps_render.errors import InputError
 from msps_render.models.baseline import lambertian_ps
 from msps_render.models.metrics import angular_error_deg, error_stats
-from msps_render.models.report import PER_OBJECT_NOTE, error_histogram, per_object_detail, write_plots
+from msps_render.models.report import (PER_OBJECT_NOTE, error_histogram, per_object_detail, write_plots,
+                                       write_tables)
+
+LAMBERTIAN = "lambertian"
+FORMAT = 2  # metrics.json: "methods" + "table"; single-method runs also keep the format-1 keys at the top
+CI_LEVEL = 0.95
+N_BOOT = 2000
+CI_SEED = 0
+CI_NOTE = (f"95 % CI: percentile bootstrap over frames (a frame's patches resampled together), {N_BOOT} "
+           f"resamples, seed {CI_SEED}, the same resamples for every method")
 
 
 def _ssim_masked(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
@@ -32,18 +51,18 @@ def _ssim_masked(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
     return float(masked_ssim(t(pred), t(gt), t(mask)))
 
 
-class _Predictor:
-    def __init__(self, checkpoint: str | Path | None, method: str):
-        self.method = method
-        self.model = None
-        if method == "net":
-            from msps_render.models.checkpoint import load_checkpoint
+@dataclass
+class Method:
+    """One column of the comparison: the Lambertian baseline or a loaded checkpoint."""
 
-            self.model, self.cfg, _ = load_checkpoint(checkpoint)
+    name: str
+    kind: str  # "net" or "lambertian"
+    info: dict = field(default_factory=dict)
+    model: object = None
 
     def patches(self, b) -> np.ndarray:
         """(B, 3, P, P) normals for a batch dict."""
-        if self.method == "lambertian":
+        if self.kind == LAMBERTIAN:
             img = b["image"].numpy().transpose(0, 2, 3, 1)
             out = np.stack([lambertian_ps(img[i], b["light_dirs"][i].numpy(), b["crosstalk"][i].numpy())
                             for i in range(len(img))])
@@ -55,75 +74,289 @@ class _Predictor:
         return pred.numpy()
 
     def frame(self, fr) -> np.ndarray:
-        if self.method == "lambertian":
+        if self.kind == LAMBERTIAN:
             return lambertian_ps(fr.image, fr.light_dirs, fr.crosstalk, fr.mask)
         from msps_render.models.predict import predict_image
 
         return predict_image(self.model, fr.image, fr.mask)
 
 
-def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = None, method: str = "net",
-             max_patches: int | None = None, verify: bool = True) -> dict:
-    """Evaluate a checkpoint (`method="net"`) or the Lambertian baseline on a dataset directory."""
-    from msps_render.data import PatchDataset, iter_frames, make_loader
+def lambertian_method() -> Method:
+    return Method(LAMBERTIAN, LAMBERTIAN, {"kind": "calibrated Lambertian photometric stereo"})
 
-    if method not in ("net", "lambertian"):
+
+def checkpoint_method(path: str | Path, name: str | None = None) -> Method:
+    """A checkpoint; unnamed, it is called after its network: net (dual cue), scn or pcn (ablations)."""
+    from msps_render.models.checkpoint import load_checkpoint
+
+    model, cfg, ck = load_checkpoint(path)
+    mode = cfg.net.mode
+    return Method(name or ("net" if mode == "dual" else mode), "net",
+                  {"kind": "dual-cue network" if mode == "dual" else f"{mode.upper()} only (ablation)",
+                   "checkpoint": str(path), "preset": cfg.preset, "mode": mode,
+                   "val_mae_deg": ck.get("val_mae_deg")}, model)
+
+
+def resolve_methods(checkpoints=(), methods=()) -> list[Method]:
+    """`msps eval --checkpoint [NAME=]PATH ... --method net|lambertian ...` -> the methods, checkpoints first.
+
+    `net` stands for the checkpoints given (the shipped one when none is); checkpoints imply `net`, so
+    `--checkpoint a.pt --method lambertian` compares both.  Nothing given: the shipped checkpoint."""
+    kinds = list(dict.fromkeys(methods or ["net"]))
+    for k in kinds:
+        if k not in ("net", LAMBERTIAN):
+            raise InputError("--method", f"unknown method '{k}' (net or lambertian)")
+    specs: list[tuple[str | None, Path]] = []
+    for s in checkpoints or ():
+        s = str(s)
+        if "=" in s and not Path(s).is_file():
+            name, _, p = s.partition("=")
+            if not name.strip() or not p.strip():
+                raise InputError("--checkpoint", f"'{s}': expected PATH or NAME=PATH")
+            specs.append((name.strip(), Path(p.strip())))
+        else:
+            specs.append((None, Path(s)))
+    if not specs and "net" in kinds:
+        from msps_render.models.predict import default_checkpoint
+
+        specs = [(None, default_checkpoint())]
+    out: list[Method] = []
+    for name, p in specs:
+        if name == LAMBERTIAN:
+            raise InputError("--checkpoint", f"'{name}={p}': '{LAMBERTIAN}' names the baseline")
+        if name is not None and name in [m.name for m in out]:
+            raise InputError("--checkpoint", f"method name '{name}' given twice")
+        m = checkpoint_method(p, name)
+        if name is None:  # two unnamed checkpoints of one kind: add the run folder and file
+            base, k = m.name, 1
+            while m.name in [o.name for o in out]:
+                m.name = f"{base} {p.resolve().parent.name}/{p.stem}" + (f" ({k})" if k > 1 else "")
+                k += 1
+        out.append(m)
+    if LAMBERTIAN in kinds:
+        out.append(lambertian_method())
+    return out
+
+
+def bootstrap_ci(num: np.ndarray, den: np.ndarray, key: str, n_boot: int = N_BOOT,
+                 level: float = CI_LEVEL) -> np.ndarray:
+    """Percentile CI of sum(num) / sum(den) with units (columns) resampled: (M, U) -> (M, 2).
+
+    The draws depend only on `key` and the number of units, so every row (method) gets the same ones."""
+    num = np.atleast_2d(np.asarray(num, np.float64))
+    den = np.broadcast_to(np.asarray(den, np.float64), num.shape)
+    U = num.shape[1]
+    if U == 0:
+        return np.full((len(num), 2), np.nan)
+    rng = np.random.default_rng([CI_SEED, zlib.crc32(key.encode())])
+    stats = []
+    for a in range(0, n_boot, 256):
+        counts = rng.multinomial(U, np.full(U, 1.0 / U), size=min(256, n_boot - a)).astype(np.float64)
+        stats.append((counts @ num.T) / np.maximum(counts @ den.T, 1e-300))  # (k, M)
+    s = np.concatenate(stats)
+    tail = 50.0 * (1.0 - level)
+    return np.stack(np.percentile(s, [tail, 100.0 - tail], axis=0), -1)
+
+
+def _legacy_methods(checkpoint, method: str) -> list[Method]:
+    if method not in ("net", LAMBERTIAN):
         raise InputError("--method", f"unknown method '{method}' (net or lambertian)")
-    if method == "net" and checkpoint is None:
+    if method == LAMBERTIAN:
+        return [lambertian_method()]
+    if checkpoint is None:
         from msps_render.models.predict import default_checkpoint
 
         checkpoint = default_checkpoint()
+    return [checkpoint_method(checkpoint)]
+
+
+def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = None, method: str = "net",
+             max_patches: int | None = None, verify: bool = True, methods: list[Method] | None = None) -> dict:
+    """Score `methods` (default: the checkpoint, or the baseline with `method="lambertian"`) on a dataset.
+
+    Writes metrics.json, table.md, per_object.csv and the figures into `out`; returns the report."""
+    from msps_render.data import PatchDataset, iter_frames, make_loader
+
+    methods = methods or _legacy_methods(checkpoint, method)
+    names = [m.name for m in methods]
+    if len(set(names)) != len(names):
+        raise InputError("--checkpoint", f"method names must differ: {', '.join(names)}")
     data, out = Path(data), Path(out)
-    m = load_manifest(data, need_complete=False)
-    pred = _Predictor(checkpoint, method)
-    conditions = [c.name for c in m.conditions]
-    report: dict = {"data": str(data), "method": method, "checkpoint": str(checkpoint) if checkpoint else None,
-                    "conditions": {}}
+    man = load_manifest(data, need_complete=False)
+    conditions = [c.name for c in man.conditions]
+    per = {m.name: {"conditions": {}} for m in methods}
+    units: dict = {}  # condition -> patches: (unit keys, (M, U) error sums, (U,) pixels); frames: rows
     for cond in conditions:
         ds = PatchDataset(data, condition=cond, verify=verify)
-        errs, ssims, seen = [], [], 0
+        errs = {n: [] for n in names}
+        ssims = {n: 0.0 for n in names}
+        usum: dict = defaultdict(lambda: np.zeros(len(methods)))
+        upix: dict = defaultdict(float)
+        seen = 0
         for b in make_loader(ds, 64, shuffle=False):
-            p = pred.patches(b)
             g = b["normal"].numpy()
             mk = b["mask"].numpy()
-            e = angular_error_deg(p.transpose(0, 2, 3, 1), g.transpose(0, 2, 3, 1))
-            errs.append(e[mk[:, 0] > 0])
-            ssims.append(_ssim_masked(p, g, mk) * len(p))
-            seen += len(p)
+            keys = list(zip(b["shard"].tolist(), b["frame"].tolist()))
+            pix = mk[:, 0].sum((1, 2))
+            for k, px in zip(keys, pix):
+                upix[k] += float(px)
+            for j, m in enumerate(methods):
+                p = m.patches(b)
+                e = angular_error_deg(p.transpose(0, 2, 3, 1), g.transpose(0, 2, 3, 1))
+                errs[m.name].append(e[mk[:, 0] > 0])
+                ssims[m.name] += _ssim_masked(p, g, mk) * len(p)
+                for k, s in zip(keys, (e * mk[:, 0]).sum((1, 2))):
+                    usum[k][j] += float(s)
+            seen += len(g)
             if max_patches and seen >= max_patches:
                 break
-        stats = error_stats(np.concatenate(errs) if errs else np.zeros(0))
-        stats["hist_deg"] = error_histogram(np.concatenate(errs) if errs else np.zeros(0))
-        stats["ssim"] = float(np.sum(ssims) / max(seen, 1))
-        stats["n_patches"] = seen
-        report["conditions"][cond] = {"patches": stats}
+        ukeys = sorted(upix)
+        num = np.stack([usum[k] for k in ukeys], 1) if ukeys else np.zeros((len(methods), 0))
+        den = np.array([upix[k] for k in ukeys])
+        ci = bootstrap_ci(num, den, f"patches:{cond}")
+        units[cond] = {"patches": ([(cond, *k) for k in ukeys], num, den), "frames": []}
+        for j, m in enumerate(methods):
+            e_all = np.concatenate(errs[m.name]) if errs[m.name] else np.zeros(0)
+            stats = error_stats(e_all)
+            stats["hist_deg"] = error_histogram(e_all)
+            stats["ssim"] = float(ssims[m.name] / max(seen, 1))
+            stats["n_patches"] = seen
+            stats["n_frames"] = len(ukeys)
+            stats["ci95_deg"] = ci[j].tolist()
+            per[m.name]["conditions"][cond] = {"patches": stats}
         # whole frames, when stored: per-object table
         try:
             frames = list(iter_frames(data, condition=cond))
         except InputError:
             frames = []
         if frames:
-            per_obj = defaultdict(list)
-            all_err, rows = [], []
+            rows = {n: [] for n in names}
+            all_err = {n: [] for n in names}
             for fr in frames:
-                n = pred.frame(fr)
-                e = angular_error_deg(n[fr.mask], fr.normal[fr.mask])
-                per_obj[fr.object].append(float(e.mean()))
-                all_err.append(e)
-                rows.append((fr.object, float(e.mean()), int(e.size), float(e.sum())))
-            report["conditions"][cond]["frames"] = error_stats(np.concatenate(all_err))
-            report["conditions"][cond]["per_object"] = {k: float(np.mean(v)) for k, v in sorted(per_obj.items())}
-            report["conditions"][cond]["per_object_detail"] = per_object_detail(rows)  # models/report.py
-    if len(conditions) > 1:
-        report["robustness"] = robustness(report, m)
-    out.mkdir(parents=True, exist_ok=True)
-    if any(v.get("per_object") for v in report["conditions"].values()):
+                for m in methods:
+                    n = m.frame(fr)
+                    e = angular_error_deg(n[fr.mask], fr.normal[fr.mask])
+                    all_err[m.name].append(e)
+                    rows[m.name].append((fr.object, float(e.mean()), int(e.size), float(e.sum())))
+            units[cond]["frames"] = rows
+            for m in methods:
+                c = per[m.name]["conditions"][cond]
+                c["frames"] = error_stats(np.concatenate(all_err[m.name]))
+                c["frames"]["n_frames"] = len(frames)
+                det = per_object_detail(rows[m.name])  # models/report.py
+                c["per_object"] = {k: v["mae_deg"] for k, v in det.items()}
+                c["per_object_detail"] = det
+            _frame_cis(per, names, rows, cond)
+    for m in methods:
+        if len(conditions) > 1:
+            per[m.name]["robustness"] = robustness(per[m.name], man)
+        per[m.name] = {"kind": m.kind, **m.info, **per[m.name]}
+    report: dict = {"format": FORMAT, "data": str(data), "dataset": dataset_name(man), "methods": per,
+                    "ci": CI_NOTE}
+    report["pooled"] = _pooled(units, names, conditions)
+    report["table"] = comparison_table(report)
+    if len(methods) == 1:  # format-1 keys: what single-method consumers (robust_table.py, tests) read
+        only = per[names[0]]
+        report.update({"method": methods[0].kind, "checkpoint": only.get("checkpoint"),
+                       "conditions": only["conditions"]})
+        if "robustness" in only:
+            report["robustness"] = only["robustness"]
+    if any(c.get("per_object") for v in per.values() for c in v["conditions"].values()):
         report["per_object_note"] = PER_OBJECT_NOTE
+    out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(report, indent=1))
-    _write_tables(report, out)
-    report["files"] = [str(out / "metrics.json")] + [str(p) for p in write_plots(report, out)] + \
-        [str(out / n) for n in ("per_object.csv", "robustness.png") if (out / n).is_file()]
+    report["files"] = [str(out / "metrics.json")] + [str(p) for p in write_tables(report, out)] + \
+        [str(p) for p in write_plots(report, out)]
     return report
+
+
+def _frame_cis(per: dict, names: list[str], rows: dict, cond: str) -> None:
+    """CI of the frame-pooled MAE and of each object's mean of frame MAEs (bootstrap over its frames)."""
+    num = np.array([[r[3] for r in rows[n]] for n in names])
+    den = np.array([r[2] for r in rows[names[0]]], np.float64)
+    key = f"frames:{cond}"
+    ci = bootstrap_ci(num, den, key)
+    objs = [r[0] for r in rows[names[0]]]
+    for j, n in enumerate(names):
+        c = per[n]["conditions"][cond]
+        c["frames"]["ci95_deg"] = ci[j].tolist()
+    for o in sorted(set(objs)):
+        idx = [i for i, x in enumerate(objs) if x == o]
+        oci = bootstrap_ci(np.array([[rows[n][i][1] for i in idx] for n in names]), np.ones(len(idx)),
+                           f"{key}:{o}")
+        for j, n in enumerate(names):
+            per[n]["conditions"][cond]["per_object_detail"][o]["ci95_deg"] = oci[j].tolist()
+
+
+def _pooled(units: dict, names: list[str], conditions: list[str]) -> dict:
+    """Every condition together: patch pixels, whole frames and per object (mean of frame MAEs), with CIs."""
+    out: dict = {n: {} for n in names}
+    keys, nums, dens = [], [], []
+    for cond in conditions:
+        k, num, den = units[cond]["patches"]
+        keys += k
+        nums.append(num)
+        dens.append(den)
+    num, den = np.concatenate(nums, 1), np.concatenate(dens)
+    ci = bootstrap_ci(num, den, "patches:*")
+    for j, n in enumerate(names):
+        out[n]["patches"] = {"mae_deg": float(num[j].sum() / max(den.sum(), 1.0)), "ci95_deg": ci[j].tolist(),
+                             "n_frames": len(keys)}
+    rows = {n: [r for c in conditions for r in (units[c]["frames"] or {}).get(n, [])] for n in names}
+    if rows[names[0]]:
+        fnum = np.array([[r[3] for r in rows[n]] for n in names])
+        fden = np.array([r[2] for r in rows[names[0]]], np.float64)
+        fci = bootstrap_ci(fnum, fden, "frames:*")
+        objs = [r[0] for r in rows[names[0]]]
+        for j, n in enumerate(names):
+            out[n]["frames"] = {"mae_deg": float(fnum[j].sum() / fden.sum()), "ci95_deg": fci[j].tolist(),
+                                "n_frames": len(objs)}
+            out[n]["per_object"] = {}
+        for o in sorted(set(objs)):
+            idx = [i for i, x in enumerate(objs) if x == o]
+            vals = np.array([[rows[n][i][1] for i in idx] for n in names])
+            oci = bootstrap_ci(vals, np.ones(len(idx)), f"frames:*:{o}")
+            for j, n in enumerate(names):
+                out[n]["per_object"][o] = {"mae_deg": float(vals[j].mean()), "ci95_deg": oci[j].tolist(),
+                                           "n_frames": len(idx)}
+    return out
+
+
+def comparison_table(report: dict) -> dict:
+    """One table, every method a column: per condition (patch pixels, whole frames, objects), then pooled."""
+    names = list(report["methods"])
+    per = report["methods"]
+    first = per[names[0]]["conditions"]
+    rows = []
+
+    def row(condition, what, obj, cells, n_frames, n_patches=None):
+        rows.append({"condition": condition, "what": what, "object": obj, "n_frames": n_frames,
+                     "n_patches": n_patches, "mae_deg": {n: cells[n].get("mae_deg") for n in names},
+                     "ci95_deg": {n: cells[n].get("ci95_deg") for n in names}})
+
+    for cond, c in first.items():
+        row(cond, "patch pixels", None, {n: per[n]["conditions"][cond]["patches"] for n in names},
+            c["patches"].get("n_frames"), c["patches"].get("n_patches"))
+        if c.get("frames"):
+            row(cond, "whole frames", None, {n: per[n]["conditions"][cond]["frames"] for n in names},
+                c["frames"].get("n_frames"))
+        for o, d in c.get("per_object_detail", {}).items():
+            row(cond, "object", o, {n: per[n]["conditions"][cond]["per_object_detail"][o] for n in names},
+                d["n_frames"])
+    if len(first) > 1:
+        pooled, p0 = report["pooled"], report["pooled"][names[0]]
+        n_patches = sum(c["patches"].get("n_patches", 0) for c in first.values())
+        row("all", "patch pixels", None, {n: pooled[n]["patches"] for n in names}, p0["patches"]["n_frames"],
+            n_patches)
+        if p0.get("frames"):
+            row("all", "whole frames", None, {n: pooled[n]["frames"] for n in names}, p0["frames"]["n_frames"])
+        for o, d in p0.get("per_object", {}).items():
+            row("all", "object", o, {n: pooled[n]["per_object"][o] for n in names}, d["n_frames"])
+    return {"methods": names, "unit": "deg", "rows": rows}
+
+
+def dataset_name(man: Manifest) -> str:
+    return (man.config.get("dataset") or {}).get("name") or man.root.resolve().name
 
 
 REFERENCE_VALUES = (0, 30)  # the training-like condition of a sweep: no env light, or the 30 deg slant
@@ -144,31 +377,3 @@ def robustness(report: dict, manifest: Manifest) -> dict:
 
 def _is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def _write_tables(report: dict, out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rows = []
-    for cond, r in report["conditions"].items():
-        for obj, v in r.get("per_object", {}).items():
-            rows.append(f"{cond},{obj},{v:.3f}")
-    if rows:
-        (out / "per_object.csv").write_text("condition,object,mae_deg\n" + "\n".join(rows) + "\n")
-    rb = report.get("robustness")
-    if rb:
-        names = list(rb["mae_deg"])
-        values = rb.get("values", {})
-        xs = [float(values[n]) if _is_number(values.get(n)) else float(i) for i, n in enumerate(names)]
-        label = (rb.get("key") or "condition").split(".")[-1]
-        fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
-        ax[0].plot(xs, [rb["mae_deg"][n] for n in names], "o-")
-        ax[0].set(xlabel=label, ylabel="MAE (deg)", title=report["method"])
-        ax[1].plot(xs, [rb["alpha"][n] for n in names], "o-", color="C1")
-        ax[1].set(xlabel=label, ylabel="fluctuation ratio alpha")
-        fig.tight_layout()
-        fig.savefig(out / "robustness.png", dpi=90)
-        plt.close(fig)
