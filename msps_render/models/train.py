@@ -8,8 +8,10 @@ reached lower validation error at equal time in our runs: docs/reproducing.md.)
 
 `train()` composes small steps, PS-FCN style: `open_data`, `build_model`,
 `start_run` (new, resumed or warm-started), then `fit`: per batch `set_lr` +
-`train_step`, every `val_every` steps `validate` + `record` (metrics line,
-best/last checkpoints).  Checkpoints are `models.checkpoint`; `last.pt` holds everything
+`train_step`, and at the `ValCadence` `validate` + `record` (metrics line,
+best/last checkpoints).  The cadence adapts to the run: at least every
+`val_every` steps, and at least `VAL_POINTS` times over the planned steps (and
+over `max_minutes`), so a short run still draws a curve.  Checkpoints are `models.checkpoint`; `last.pt` holds everything
 needed to resume the same schedule (optimizer, step, epoch, position, RNG state).
 Fine-tuning a checkpoint on another corpus mix (`--init`): `train.freeze_bn` keeps its
 BatchNorm statistics, which otherwise follow the corpus of the latest batches
@@ -212,10 +214,41 @@ def open_data(data, val, verify: bool, cache: bool | str = False):
     return train_ds, val_ds
 
 
+VAL_POINTS = 20  # validations a run plans for at least (its curve's points)
+VAL_MAX_SHARE = 0.2  # time-triggered validations take at most about this share of the wall time
+
+
+@dataclass
+class ValCadence:
+    """When to validate: every `every` steps (`val_every`, or denser so that the planned steps give
+    `VAL_POINTS` points), and with a time budget also after `budget / VAL_POINTS` seconds without one
+    (or more, so validation stays near `VAL_MAX_SHARE` of the time).  Validation changes no training
+    state, so the time trigger leaves the trained weights reproducible."""
+
+    every: int
+    seconds: float = float("inf")
+    last_t: float = 0.0
+    val_s: float = 0.0
+
+    @classmethod
+    def plan(cls, cfg: ModelConfig, batches_per_epoch: int, budget_s: float, now: float) -> "ValCadence":
+        t = cfg.train
+        steps = min(t.max_steps, t.epochs * max(batches_per_epoch, 1))
+        return cls(max(1, min(t.val_every, steps // VAL_POINTS)), budget_s / VAL_POINTS, now)
+
+    def due(self, step: int, now: float) -> bool:
+        wait = max(self.seconds, self.val_s * (1 - VAL_MAX_SHARE) / VAL_MAX_SHARE)
+        return step % self.every == 0 or now - self.last_t >= wait
+
+    def done(self, started: float, now: float) -> None:
+        self.val_s, self.last_t = now - started, now
+
+
 def fit(run: Run, loader, val_loader, log, bar, device: str) -> None:
-    """Epochs of `train_step` until the step or time budget; validate + `record` every `val_every`."""
+    """Epochs of `train_step` until the step or time budget; validate + `record` when `ValCadence` says."""
     t_cfg, state = run.cfg.train, run.state
     set_train_mode(run.model, t_cfg.freeze_bn)
+    cadence = ValCadence.plan(run.cfg, len(loader), run.budget, time.perf_counter())
     done = run.should_stop()  # a finished run resumed does no extra step
     window_t, window_n, run_loss = time.perf_counter(), 0, []
     while not done and state["epoch"] < t_cfg.epochs:
@@ -234,9 +267,11 @@ def fit(run: Run, loader, val_loader, log, bar, device: str) -> None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{np.mean(run_loss[-50:]):.4f}", epoch=state["epoch"])
             stop = run.should_stop()
-            if state["step"] % t_cfg.val_every == 0 or stop:
+            if stop or cadence.due(state["step"], time.perf_counter()):
+                t0 = time.perf_counter()
                 v = validate(run.model, val_loader, t_cfg.val_max_patches)
-                record(run, log, v, run_loss, parts, lr, window_n / (time.perf_counter() - window_t))
+                record(run, log, v, run_loss, parts, lr, window_n / (t0 - window_t))
+                cadence.done(t0, time.perf_counter())
                 window_t, window_n, run_loss = time.perf_counter(), 0, []
             if stop:
                 done = True
@@ -287,7 +322,9 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
             "elapsed_s": run.elapsed(), "n_params": run.n_params}
 
 
-def plot_metrics(jsonl: Path, png: Path) -> Path | None:
+def plot_metrics(jsonl: Path, png: Path, title: str | None = None) -> Path | None:
+    """The training curve: every recorded point, training loss (mean since the previous point) and
+    validation MAE, the best marked; titled with the run."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -296,12 +333,27 @@ def plot_metrics(jsonl: Path, png: Path) -> Path | None:
     recs = [json.loads(l) for l in jsonl.read_text().splitlines() if l.strip()]
     if not recs:
         return None
-    fig, ax = plt.subplots(1, 2, figsize=(10, 3.5))
+    if title is None:
+        title = jsonl.parent.name
+        cfg_file = jsonl.parent / "config.json"
+        if cfg_file.is_file():
+            c = json.loads(cfg_file.read_text())
+            title += f" ({c.get('preset', '?')}, {c.get('net', {}).get('mode', '?')})"
     steps = [r["step"] for r in recs]
-    ax[0].plot(steps, [r["loss"] for r in recs])
-    ax[0].set(xlabel="step", ylabel="training loss", yscale="log")
-    ax[1].plot(steps, [r["val_mae_deg"] for r in recs], color="C1")
+    val = [r["val_mae_deg"] for r in recs]
+    loss = [r["loss"] for r in recs]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    ax[0].plot(steps, loss, ".-", ms=4, lw=1)
+    ax[0].set(xlabel="step", ylabel="training loss (mean since previous point)", yscale="log")
+    ax[1].plot(steps, val, ".-", ms=4, lw=1, color="C1")
+    b = int(np.argmin(val))
+    ax[1].plot([steps[b]], [val[b]], "*", ms=11, color="C3")
     ax[1].set(xlabel="step", ylabel="validation MAE (deg)")
+    ax[1].set_title(f"best (star): {val[b]:.2f} deg at step {steps[b]}", fontsize=9)
+    for a in ax:
+        a.grid(alpha=0.3)
+    mins = recs[-1].get("elapsed_s", 0) / 60
+    fig.suptitle(f"{title}: {len(recs)} validations, {steps[-1]} steps, {mins:.1f} min", fontsize=10)
     fig.tight_layout()
     fig.savefig(png, dpi=90)
     plt.close(fig)
