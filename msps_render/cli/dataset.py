@@ -1,4 +1,4 @@
-"""Dataset commands: `msps render | verify | inspect | preview`."""
+"""Dataset commands: `msps render | verify | inspect | preview | card`."""
 from __future__ import annotations
 
 import json
@@ -34,7 +34,8 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
     m = render_dataset(cfg, out, workers=workers, scheduler=scheduler, resume=resume, force=force,
                        variant=variant, threads=threads, progress=not quiet,
                        recycle_after=recycle_after or None)
-    typer.echo(f"{out}: {len(m['shards'])} shards, {m['n_patches']} patches, complete={m['complete']}")
+    card = f"; card: {out / 'card.png'}" if m["complete"] and (out / "card.png").is_file() else ""
+    typer.echo(f"{out}: {len(m['shards'])} shards, {m['n_patches']} patches, complete={m['complete']}{card}")
 
 
 @app.command("verify")
@@ -107,3 +108,23 @@ def preview_cmd(root: Path = typer.Argument(..., help="dataset directory"),
         raise InputError(root, "no dataset.json here")
     check_writable(out.parent)
     typer.echo(f"wrote {preview_dataset(root, out, n, tile=tile, cols=cols, labels=labels)}")
+
+
+@app.command("card")
+@clean_errors
+def card_cmd(root: Path = typer.Argument(..., help="dataset directory"),
+             out: Optional[Path] = typer.Option(None, "--out", "-o",
+                                                help="card PNG (default DIR/card.png); the JSON goes beside it")):
+    """Dataset card: counts, versions and coverage histograms (slant, tilts, environment, crosstalk,
+    materials, albedo, textures, shapes, patch coverage) as one PNG and one JSON.
+    `msps render` writes DIR/card.png and DIR/card.json itself when a dataset is complete."""
+    from msps_render.dataset.card import write_card
+    from msps_render.pipeline.outdir import check_writable
+
+    if not (root / "dataset.json").is_file():
+        raise InputError(root, "no dataset.json here")
+    if out is not None and out.suffix.lower() != ".png":
+        raise InputError(out, "--out must be a .png path (the JSON is written beside it)")
+    check_writable(out.parent if out is not None else root)
+    png, js = write_card(root, out)
+    typer.echo(f"wrote {png} and {js}")

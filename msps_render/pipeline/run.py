@@ -145,7 +145,23 @@ def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, f
     manifest["last_run"] = {"wall_seconds": time.perf_counter() - t0, "workers": workers,
                             "scheduler": scheduler or "local", "shards_rendered": len(todo)}
     write_manifest(out, manifest)
+    if manifest["complete"]:
+        _write_card(out)
     return manifest
+
+
+def _write_card(out: Path) -> None:
+    """DIR/card.png + card.json of the finished dataset.  A failure here costs the card, not the
+    render (the dataset is complete and recorded): a warning names `msps card` to retry."""
+    import sys
+
+    from msps_render.dataset.card import write_card
+
+    try:
+        write_card(out)
+    except Exception as e:  # noqa: BLE001 - never fail a finished render over its summary picture
+        print(f"warning: dataset card not written ({type(e).__name__}: {e}); retry with `msps card {out}`",
+              file=sys.stderr)
 
 
 def _cleanup_failed(out: Path, manifest: dict) -> None:
