@@ -65,7 +65,8 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
 @clean_errors
 def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (linear RGB) or "
                                                "PNG/JPG (sRGB-encoded, decoded to linear; alpha dropped)"),
-                out: Path = typer.Option(..., help="output path stem (writes .npy and .png)"),
+                out: Path = typer.Option(..., help="output path stem, dots kept: OUT.npy, OUT.png, OUT-panel.png "
+                                         "(and OUT-metrics.json with --normal-gt)"),
                 checkpoint: Optional[Path] = typer.Option(None, help="checkpoint (default: shipped cpu model)"),
                 method: str = typer.Option("net", help="net or lambertian"),
                 mask: Optional[Path] = typer.Option(None, help="mask image (default: non-zero pixels)"),
@@ -74,14 +75,27 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
                 light_dirs: Optional[str] = typer.Option(None, help="JSON 3x3, rows toward the lights"),
                 crosstalk: Optional[str] = typer.Option(None, help="JSON 3x3 crosstalk matrix"),
                 linear: bool = typer.Option(False, "--linear", help="PNG values are linear radiance (e.g. "
-                                            "`msps export --format png16`), not sRGB")):
-    """Normal map of a whole image (overlapping 40x40 tiles, blended) or by the Lambertian baseline."""
-    from msps_render.models.predict import predict_main
+                                            "`msps export --format png16`), not sRGB"),
+                normal_gt: Optional[Path] = typer.Option(None, "--normal-gt", help="ground-truth normals: .npy "
+                                                         "(H, W, 3) or EXR/PNG normal map ((n+1)/2-encoded; "
+                                                         "signed EXR too); zero normals are left out. Adds "
+                                                         "the truth and the error map to the panel and writes "
+                                                         "OUT-metrics.json")):
+    """Normal map of a whole image (overlapping 40x40 tiles, blended) or by the Lambertian baseline,
+    with a panel PNG (input, prediction, and with --normal-gt the truth and the angular error)."""
+    from msps_render.models.predict import out_paths, predict_main
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out.parent)
     files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk,
-                         linear=linear)
+                         linear=linear, normal_gt=normal_gt)
+    if normal_gt:
+        m = json.loads(out_paths(out)["metrics"].read_text())
+        if m.get("n_pixels"):
+            typer.echo(f"MAE {m['mae_deg']:.2f} deg, median {m['median_deg']:.2f} over {m['n_pixels']} pixels "
+                       f"({m['n_left_out']} mask pixels without ground truth left out)")
+        else:
+            typer.echo("no pixel has both a mask and a ground-truth normal")
     typer.echo("wrote " + ", ".join(map(str, files)))
 
 

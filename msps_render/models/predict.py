@@ -98,17 +98,111 @@ def read_inputs(image_path: str | Path, mask_path: str | Path | None,
     return img, mk
 
 
+OUT_SUFFIXES = (".npy", ".png")  # `--out x.png` and `--out x` both mean the stem x; other dots stay
+PANEL_COL_IN, PANEL_H_IN, PANEL_CBAR_IN, PANEL_DPI = 3.0, 3.4, 0.7, 100  # panel layout (inches, dpi)
+ERROR_MAX_DEG = 45.0  # top of the error map's colour scale (larger errors saturate)
+
+
+def out_paths(out: str | Path) -> dict[str, Path]:
+    """OUT.npy, OUT.png, OUT-panel.png, OUT-metrics.json: OUT is a stem whose dots are kept
+    (`pred-v0.1` -> `pred-v0.1.npy`; `Path.with_suffix` would write `pred-v0.npy`)."""
+    s = str(out)
+    if Path(s).suffix.lower() in OUT_SUFFIXES:
+        s = s[:-len(Path(s).suffix)]
+    return {"npy": Path(s + ".npy"), "png": Path(s + ".png"), "panel": Path(s + "-panel.png"),
+            "metrics": Path(s + "-metrics.json")}
+
+
+def read_normal_gt(path: str | Path, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(unit normals (H, W, 3), valid (H, W)) of a ground-truth normal map.
+
+    .npy: signed normals.  PNG (8/16 bit) and other images: (n+1)/2-encoded.  EXR/HDR: signed (as
+    `msps` writes normal.exr) unless no value is negative, then (n+1)/2-encoded.  Zero normals (and,
+    once decoded, vectors far from unit length: black or mid-grey backgrounds) are invalid."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "ground-truth normal map not found")
+    suffix = p.suffix.lower()
+    if suffix == ".npy":
+        n = np.load(p).astype(np.float64)
+    elif suffix == ".png":
+        from msps_render.io.png16 import read_png
+
+        a = read_png(p)
+        n = a.astype(np.float64) / np.iinfo(a.dtype).max * 2.0 - 1.0 if a.ndim == 3 else a
+    else:
+        n = read_image(p).astype(np.float64)
+        if suffix not in (".exr", ".hdr") or n[..., :3].min() >= 0:
+            n = n * 2.0 - 1.0
+    if n.ndim != 3 or n.shape[2] < 3:
+        raise InputError(p, f"expected an (H, W, 3) normal map, got shape {list(n.shape)}")
+    n = n[..., :3]
+    if n.shape[:2] != tuple(shape):
+        raise InputError(p, f"normal map is {n.shape[1]}x{n.shape[0]}, the image is {shape[1]}x{shape[0]}")
+    n = np.where(np.isfinite(n).all(-1, keepdims=True), n, 0.0)
+    length = np.linalg.norm(n, axis=-1)
+    valid = (length > 0.5) & (length < 1.5)
+    n = np.where(valid[..., None], n / np.maximum(length, 1e-12)[..., None], 0.0)
+    return n, valid
+
+
+def write_panel(path: Path, image: np.ndarray, mask: np.ndarray, normal: np.ndarray, title: str,
+                gt: np.ndarray | None = None, err: np.ndarray | None = None) -> Path:
+    """Input (tonemapped), predicted normals, and with a ground truth: it and the angular-error map
+    with its colour bar.  Fixed size: PANEL_COL_IN per column (+ PANEL_CBAR_IN), PANEL_H_IN high."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from msps_render.preview import tonemap
+
+    tiles = [(tonemap(image, mask), "input (tonemapped)"), (normal_to_rgb8(normal, mask), "prediction")]
+    if gt is not None:
+        tiles.append((normal_to_rgb8(gt, np.linalg.norm(gt, axis=-1) > 0), "ground truth"))
+    cols = len(tiles) + (err is not None)
+    width = PANEL_COL_IN * cols + (PANEL_CBAR_IN if err is not None else 0.0)
+    fig = plt.figure(figsize=(width, PANEL_H_IN), dpi=PANEL_DPI)
+    ratios = [PANEL_COL_IN] * cols + ([PANEL_CBAR_IN * 0.25] if err is not None else [])
+    gs = fig.add_gridspec(1, len(ratios), width_ratios=ratios, left=0.01, right=0.93 if err is not None else 0.99,
+                          top=0.80, bottom=0.03, wspace=0.06)
+    for i, (t, label) in enumerate(tiles):
+        ax = fig.add_subplot(gs[0, i])
+        ax.imshow(t, interpolation="nearest")
+        ax.set_title(label, fontsize=9)
+        ax.axis("off")
+    if err is not None:
+        ax = fig.add_subplot(gs[0, len(tiles)])
+        bg = np.ones(mask.shape + (3,))
+        bg[mask & ~np.isfinite(err)] = 0.6  # in the mask but no ground truth: grey, left out
+        ax.imshow(bg, interpolation="nearest")
+        cmap = matplotlib.colormaps["viridis"].copy()
+        cmap.set_bad(alpha=0.0)
+        im = ax.imshow(np.ma.masked_invalid(err), cmap=cmap, vmin=0, vmax=ERROR_MAX_DEG, interpolation="nearest")
+        ax.set_title("angular error" + (" (grey: no truth)" if (bg[..., 0] == 0.6).any() else ""), fontsize=9)
+        ax.axis("off")
+        cb = fig.colorbar(im, cax=fig.add_subplot(gs[0, -1]), extend="max")
+        cb.set_label("deg", fontsize=8)
+        cb.ax.tick_params(labelsize=7)
+    fig.suptitle(title, fontsize=10)
+    fig.savefig(path, dpi=PANEL_DPI)
+    plt.close(fig)
+    return path
+
+
 def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | None = None,
                  method: str = "net", mask: str | Path | None = None, calibration: str | Path | None = None,
                  light_dirs: str | None = None, crosstalk: str | None = None, warn=None,
-                 linear: bool = False) -> list[Path]:
-    """Write OUT.npy (H, W, 3 normals) and OUT.png (visualisation).
+                 linear: bool = False, normal_gt: str | Path | None = None, panel: bool = True) -> list[Path]:
+    """Write OUT.npy (H, W, 3 normals), OUT.png (visualisation) and OUT-panel.png (input, prediction;
+    with `normal_gt` also the ground truth and the error map, and OUT-metrics.json with the MAE).
 
     `warn(message)` (default: a 'warning: ...' line on stderr) hears when the Lambertian path assumes
     the paper's lights for lack of a calibration, and when the given lights differ from the geometry
     the network was trained for (the network takes no light input)."""
     warn = warn or _warn_stderr
     img, mk = read_inputs(image, mask, linear)
+    gt = read_normal_gt(normal_gt, img.shape[:2]) if normal_gt else None  # before any work: fail early
     calibrated = bool(calibration or light_dirs or crosstalk)
     L, M = load_calibration(calibration, light_dirs, crosstalk)  # validated on both paths
     if method == "lambertian":
@@ -116,6 +210,7 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
             warn("no --calibration: assuming the paper's lights (slant 30 deg, tilts 0/120/240 deg, "
                  "crosstalk 0.92/0.04)")
         n = lambertian_ps(img, L, M, mk)
+        label = "lambertian"
     else:
         from msps_render.models.checkpoint import load_checkpoint
 
@@ -127,12 +222,32 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
         if min(img.shape[:2]) < 40:
             raise InputError(image, f"image is {img.shape[1]}x{img.shape[0]}; the network needs at least 40x40")
         n = predict_image(model, img, mk)
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    npy = out.with_suffix(".npy")
-    np.save(npy, n.astype(np.float32))
-    png = write_png(out.with_suffix(".png"), normal_to_rgb8(n, mk))
-    return [npy, png]
+        label = f"net ({Path(ck).name})"
+    paths = out_paths(out)
+    paths["npy"].parent.mkdir(parents=True, exist_ok=True)
+    np.save(paths["npy"], n.astype(np.float32))
+    files = [paths["npy"], write_png(paths["png"], normal_to_rgb8(n, mk))]
+    title = f"{Path(image).name}: {label}"
+    err = None
+    if gt is not None:
+        from msps_render.models.metrics import angular_error_deg, error_stats
+
+        g, valid = gt
+        scored = mk & valid
+        err = np.full(mk.shape, np.nan)
+        err[scored] = angular_error_deg(n[scored], g[scored])
+        stats = error_stats(err[scored])
+        metrics = {"image": str(image), "normal_gt": str(normal_gt), "method": method,
+                   "checkpoint": None if method == "lambertian" else str(ck), **stats,
+                   "n_mask_pixels": int(mk.sum()), "n_left_out": int((mk & ~valid).sum())}
+        paths["metrics"].write_text(json.dumps(metrics, indent=1))
+        title += (f" — MAE {stats['mae_deg']:.2f}° over {stats['n_pixels']:,} px" if stats["n_pixels"]
+                  else " — no pixel with both a mask and a ground-truth normal")
+    if panel:
+        files.append(write_panel(paths["panel"], img, mk, n, title, gt[0] if gt is not None else None, err))
+    if gt is not None:
+        files.append(paths["metrics"])
+    return files
 
 
 def _warn_stderr(msg: str) -> None:
