@@ -94,7 +94,8 @@ def inspect_cmd(path: Path = typer.Argument(..., help="dataset directory or shar
 @clean_errors
 def preview_cmd(root: Path = typer.Argument(..., help="dataset directory"),
                 out: Path = typer.Option(..., "--out", "-o", help="PNG contact sheet"),
-                n: int = typer.Option(8, min=1, help="number of samples (whole frames if stored, else patches)"),
+                n: int = typer.Option(8, min=1, help="number of samples (whole frames if stored, else patches); at least one "
+                                              "per sweep condition"),
                 tile: int = typer.Option(160, min=160, max=1024, help="tile size in px (image, normal, mask)"),
                 cols: int = typer.Option(2, min=1, max=16, help="samples per row"),
                 labels: bool = typer.Option(True, "--labels/--no-labels",

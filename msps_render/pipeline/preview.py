@@ -131,6 +131,19 @@ def _plots(width: int, slants, mats, cover) -> np.ndarray:
     return rgb
 
 
+def sample_quota(names: list[str], condition_of: dict[str, str], n: int) -> dict[str, int]:
+    """{shard: samples to take}: `n` (at least one per condition) dealt to the shards with the
+    conditions interleaved, so every condition is shown, the last one (e.g. the strongest
+    environment light: plans are condition-major) as much as the first."""
+    by_cond: dict[str, list[str]] = {}
+    for name in names:
+        by_cond.setdefault(condition_of.get(name, ""), []).append(name)
+    order = [g[i] for i in range(max(map(len, by_cond.values()), default=0)) for g in by_cond.values() if i < len(g)]
+    n = max(n, len(by_cond))
+    S = max(1, len(order))
+    return {name: n // S + (1 if i < n % S else 0) for i, name in enumerate(order)}
+
+
 def preview_dataset(root: str | Path, out: str | Path, n: int = 8, seed: int = 0, tile: int = 160,
                     cols: int = 2, labels: bool = True) -> Path:
     """Write the contact sheet of dataset `root` to `out` (PNG); returns `out`."""
@@ -140,7 +153,9 @@ def preview_dataset(root: str | Path, out: str | Path, n: int = 8, seed: int = 0
     rng = np.random.default_rng(seed)
     samples: list[Sample] = []
     slants, mats, cover, objects, conds = [], [], [], [], []
-    per_shard = max(1, -(-n // max(1, len(names))))  # spread the samples over the shards
+    quota = sample_quota(names, {k: e.get("condition", "") for k, e in (m or {}).get("shards", {}).items()}, n)
+    n = sum(quota.values())
+    carry = 0  # samples a shard could not give (fewer frames than its share) go to the next one
     for name in names:
         path = root / SHARD_DIR / name
         table = read_frame_table(path)
@@ -148,7 +163,9 @@ def preview_dataset(root: str | Path, out: str | Path, n: int = 8, seed: int = 0
         mats.extend(s for ms in table["materials"] for s in ms.split(";") if s)
         objects.extend(table["object"])
         conds.extend(table["condition"])
-        got, cov = shard_samples(path, min(per_shard, n - len(samples)), rng)
+        want = min(quota[name] + carry, n - len(samples))
+        got, cov = shard_samples(path, want, rng)
+        carry = want - len(got)
         samples.extend(got)
         cover.extend(cov)
     samples = samples[:n]
