@@ -70,11 +70,32 @@ def test_show_cli_prints_every_key_as_toml_that_reads_back(tmp_path):
     out = r.stdout
     assert "# shards: 6 (3 condition(s) x 2), frames: 18 (3 per shard)" in out
     assert "#   slant_deg=40.0: 2 shards, 6 frames" in out
-    assert "estimates: none (--probe 0)" in out
+    assert "estimates: none (nothing rendered)" in out
     # every key, defaults included: a default the file never mentions is printed
     assert "jitter_deg = 0.0" in out and "width = 48" in out and "# distance = (unset)" in out
     back = validate_config(tomllib.loads(out))  # the printed TOML is the resolved config
     assert config_hash(back) == config_hash(load_config(cfg_path, ["camera.width=48"]))
+
+
+def test_show_renders_nothing_unless_probe_asked_and_says_so(tmp_path):
+    """The default is the plan alone (no Mitsuba frame, no temp dir); --probe N renders N frames and
+    the heading says so."""
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir()
+    cfg_path = write(tmp_path, TINY)
+    r = cli("config", "show", cfg_path, env_extra={"TMPDIR": str(tmpdir)})
+    assert r.returncode == 0, r.stderr
+    assert "# ---- plan (nothing rendered) ----" in r.stdout and "probe frame" not in r.stdout
+    assert "estimates: none (nothing rendered); `--probe N` renders N frames" in r.stdout
+    from msps_render.render.variant import resolve_variant
+
+    if not resolve_variant("rgb").startswith("llvm"):
+        pytest.skip("LLVM variant unavailable: the probe would be too slow")
+    r = cli("config", "show", cfg_path, "--probe", "1", "--masks", "1", env_extra={"TMPDIR": str(tmpdir)})
+    assert r.returncode == 0, r.stderr
+    assert "# ---- plan, with estimates from 1 probe frame(s) rendered now (temp dir, deleted) ----" in r.stdout
+    assert "nothing rendered" not in r.stdout and "# render time: ~" in r.stdout
+    assert list(tmpdir.iterdir()) == []  # the probe's temp dir is gone
 
 
 def test_show_json_and_help(tmp_path):

@@ -36,17 +36,20 @@ def config_reference() -> str:
 @clean_errors
 def show_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.toml) or TOML path"),
              set_: List[str] = typer.Option([], "--set", help="override, e.g. lights.slant_deg=25"),
-             probe: int = typer.Option(2, "--probe", min=0,
+             probe: int = typer.Option(0, "--probe", min=0,
                                        help="render N frames of the plan (temp dir, deleted) to estimate "
-                                            "patches, time and disk; 0: the plan only"),
+                                            "patches, time and disk (default 0: the plan alone, nothing "
+                                            "rendered)"),
              masks: int = typer.Option(32, "--masks", min=1,
-                                       help="count patches on the masks of N frames of the plan (one ray "
-                                            "per pixel; all frames if fewer: then the count is exact)"),
+                                       help="with --probe: count patches on the masks of N frames of the "
+                                            "plan (one ray per pixel; all frames if fewer: then the count "
+                                            "is exact)"),
              variant: Optional[str] = typer.Option(None, help="Mitsuba variant for the probe"),
              threads: Optional[int] = typer.Option(None, help="render threads for the probe"),
              as_json: bool = typer.Option(False, "--json", help="plan and estimates as JSON")):
     """Print the resolved config (every key, as TOML) and the planned work: conditions, shards,
-    frames, and estimated patches, render time and disk. Renders no dataset."""
+    frames.  Nothing is rendered unless --probe N: then N frames are rendered into a temporary
+    directory (deleted) to estimate patches, render time and disk."""
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.describe import describe, plan_text
 

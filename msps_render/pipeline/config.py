@@ -37,8 +37,8 @@ class StorageConfig(StrictModel):
     store_frames: bool = Field(False, description="also keep whole frames (test sets)")
     store_per_light: bool = Field(False, description="with store_frames: also keep each whole frame's "
                                                      "per-light images (light k alone) and its environment-"
-                                                     "only image, so per-light exports need no --rerender "
-                                                     "(about 3x the whole-frame disk)")
+                                                     "only image, in image_dtype, so exports need no "
+                                                     "--rerender")
 
     @model_validator(mode="after")
     def _per_light_needs_frames(self) -> "StorageConfig":

@@ -99,7 +99,7 @@ class Description:
         return dataclasses.asdict(self)
 
 
-def describe(cfg: DatasetConfig, probe: int = 2, variant: str | None = None,
+def describe(cfg: DatasetConfig, probe: int = 0, variant: str | None = None,
              threads: int | None = None, masks: int = 32) -> Description:
     """The resolved config, the plan and (probe > 0) estimates: time and disk measured on `probe`
     rendered frames, patches counted on the masks of `masks` frames (at least the probe's)."""
@@ -274,7 +274,9 @@ def _duration(s: float) -> str:
 
 def plan_text(desc: Description) -> str:
     """The plan and the estimates as TOML comments (so `config show` output stays valid TOML)."""
-    L = ["# ---- plan (nothing rendered) ----"]
+    e = desc.estimate
+    L = ["# ---- plan (nothing rendered) ----" if e is None else
+         f"# ---- plan, with estimates from {e.probe_frames} probe frame(s) rendered now (temp dir, deleted) ----"]
     W, H = desc.resolution
     L.append(f"# conditions: {desc.n_conditions}" + (f" (sweep over {desc.sweep_key})" if desc.sweep_key else ""))
     for c in desc.conditions:
@@ -286,10 +288,11 @@ def plan_text(desc: Description) -> str:
     L.append(f"# frames {W}x{H} px, {desc.spp} spp; patches {desc.patch_size} px, stride {desc.patch_stride}, "
              f"kept at >= {desc.min_coverage:g} object coverage; storage {st['compression']}, "
              f"image {st['image_dtype']}, normal {st['normal_dtype']}"
-             + (", whole frames stored" if st["store_frames"] else ""))
-    e = desc.estimate
+             + (", whole frames stored" if st["store_frames"] else "")
+             + (" with per-light images" if st.get("store_per_light") else ""))
     if e is None:
-        L.append("# estimates: none (--probe 0); `--probe N` renders N frames of the plan to measure them")
+        L.append("# estimates: none (nothing rendered); `--probe N` renders N frames of the plan into a temp "
+                 "dir to estimate patches, render time and disk")
         return "\n".join(L) + "\n"
     L.append(f"# ---- estimates: {e.probe_frames} probe frame(s) rendered with {e.variant} into a temp dir "
              f"(deleted): {'; '.join(e.probe_from)} ----")
