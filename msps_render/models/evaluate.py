@@ -82,7 +82,7 @@ class Method:
 
 
 def lambertian_method() -> Method:
-    return Method(LAMBERTIAN, LAMBERTIAN, {"kind": "calibrated Lambertian photometric stereo"})
+    return Method(LAMBERTIAN, LAMBERTIAN, {"description": "calibrated Lambertian photometric stereo"})
 
 
 def checkpoint_method(path: str | Path, name: str | None = None) -> Method:
@@ -92,7 +92,7 @@ def checkpoint_method(path: str | Path, name: str | None = None) -> Method:
     model, cfg, ck = load_checkpoint(path)
     mode = cfg.net.mode
     return Method(name or ("net" if mode == "dual" else mode), "net",
-                  {"kind": "dual-cue network" if mode == "dual" else f"{mode.upper()} only (ablation)",
+                  {"description": "dual-cue network" if mode == "dual" else f"{mode.upper()} only (ablation)",
                    "checkpoint": str(path), "preset": cfg.preset, "mode": mode,
                    "val_mae_deg": ck.get("val_mae_deg")}, model)
 

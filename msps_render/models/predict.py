@@ -176,8 +176,7 @@ def write_panel(path: Path, image: np.ndarray, mask: np.ndarray, normal: np.ndar
         bg = np.ones(mask.shape + (3,))
         bg[mask & ~np.isfinite(err)] = 0.6  # in the mask but no ground truth: grey, left out
         ax.imshow(bg, interpolation="nearest")
-        cmap = matplotlib.colormaps["viridis"].copy()
-        cmap.set_bad(alpha=0.0)
+        cmap = matplotlib.colormaps["viridis"].with_extremes(bad=(0, 0, 0, 0))
         im = ax.imshow(np.ma.masked_invalid(err), cmap=cmap, vmin=0, vmax=ERROR_MAX_DEG, interpolation="nearest")
         ax.set_title("angular error" + (" (grey: no truth)" if (bg[..., 0] == 0.6).any() else ""), fontsize=9)
         ax.axis("off")
