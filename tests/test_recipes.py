@@ -100,7 +100,20 @@ def test_recipe_1_own_meshes_fixed_frames_per_mesh(work):
     runs = run_recipe("1", work)
     counts = Counter(f.object for f in iter_frames(work / "my-meshes"))
     assert counts == {"capsule": 2, "torus": 2}
-    assert "Counter({'capsule': 2, 'torus': 2})" in runs[-1].stdout
+    assert any("Counter({'capsule': 2, 'torus': 2})" in r.stdout for r in runs)
+
+
+def test_recipe_1_dataset_card(work):
+    runs = run_recipe("1", work)
+    m = json.loads((work / "my-meshes" / "dataset.json").read_text())
+    for png in (work / "my-meshes" / "card.png", work / "my-meshes-card.png"):  # by msps render, by msps card
+        assert png.is_file() and png.with_suffix(".json").is_file()
+    card = json.loads((work / "my-meshes-card.json").read_text())
+    assert card == json.loads((work / "my-meshes" / "card.json").read_text())
+    assert (card["counts"]["frames"], card["counts"]["patches"]) == (m["n_frames"], m["n_patches"])
+    out = runs[-1].stdout
+    assert f"{m['n_frames']} frames, {m['n_patches']} patches, 2 shards" in out
+    assert "objects: {'capsule': 2, 'torus': 2}" in out
 
 
 def test_recipe_2_own_env_map(work):
@@ -131,12 +144,22 @@ def test_recipe_4_pytorch(work):
     assert "patches" in runs[0].stdout and "'image': (3, 16, 16)" in runs[0].stdout
 
 
-def test_recipe_5_export(work):
-    run_recipe("5", work)
-    for d in ("export-png16", "export-exr", "export-dl", "export-psfcn"):
+def test_recipe_5_export_and_read_back(work):
+    runs = run_recipe("5", work)
+    for d in ("export-png16", "export-exr", "export-dl", "export-psfcn", "export-psfcn-stored",
+              "export-png16-stored"):
         idx = json.loads((work / d / "export.json").read_text())
         assert idx["n_frames"] == 4
     assert len((work / "export-dl" / "objects.txt").read_text().split()) == 4
+    assert json.loads((work / "export-psfcn-stored" / "export.json").read_text())["per_light"]["source"].startswith("stored")
+    assert json.loads((work / "export-dl" / "export.json").read_text())["per_light"]["source"].startswith("re-rendered")
+    out = runs[-1].stdout  # the reading block: pypng, OpenCV (BGR), OpenEXR, as the recipe shows
+    png_vs_exr = float(re.search(r"png16 vs exr: (\S+) 16-bit steps", out).group(1))
+    assert png_vs_exr <= 0.51  # rounding to the nearest 16-bit code
+    steps = float(re.search(r"per-light sum vs image: (\S+) steps", out).group(1))
+    # three rounded lights vs the rounded image (half a step each) + float16 storage (2^-11 of 65535)
+    assert steps <= 4 * 0.51 + 65535 * 2.0 ** -11, steps
+    assert re.search(r"psfcn: 3 lights, mask pixels: [1-9]", out)
 
 
 def test_recipe_6_compose_and_predict(work):
