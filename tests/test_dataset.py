@@ -71,3 +71,34 @@ def test_manifest_typed_conditions_new_and_old(tmp_path):
     (tmp_path / "dataset.json").write_text(json.dumps({**old, "complete": False}))
     with pytest.raises(InputError, match="incomplete"):
         load_manifest(tmp_path)
+
+
+def test_per_light_round_trip_and_overflow(tmp_path):
+    """frames/per_light and frames/env_image: written in image_dtype, read only when asked, and a
+    shard without them (every older shard) reads with None."""
+    import dataclasses
+
+    import h5py
+
+    c = _content()
+    rng = np.random.default_rng(1)
+    recs = [dataclasses.replace(f, per_light=rng.uniform(0, 1, (3, 16, 16, 3)).astype(np.float32),
+                                env_image=None if j == 0 else np.full((16, 16, 3), 0.25, np.float32))
+            for j, f in enumerate(c.frames)]
+    info = write_shard(tmp_path / "s.h5", dataclasses.replace(c, frames=recs))
+    assert K.FRAME_PER_LIGHT in info["arrays"] and K.FRAME_ENV_IMAGE in info["arrays"]
+    with h5py.File(tmp_path / "s.h5", "r") as h:
+        assert h[K.FRAME_PER_LIGHT].dtype == np.float16 and h[K.FRAME_PER_LIGHT].shape == (2, 3, 16, 16, 3)
+    assert verify_shard(tmp_path / "s.h5", info["file_sha256"]) == []
+    frames = list(iter_whole_frames(tmp_path / "s.h5", per_light=True))
+    for f, r in zip(frames, recs):
+        assert np.array_equal(f.per_light, r.per_light.astype(np.float16).astype(np.float32))
+    assert not frames[0].env_image.any() and (frames[1].env_image == 0.25).all()  # zeros: no environment
+    assert all(f.per_light is None for f in iter_whole_frames(tmp_path / "s.h5"))
+    write_shard(tmp_path / "old.h5", c)  # no per-light images
+    assert all(f.per_light is None and f.env_image is None
+               for f in iter_whole_frames(tmp_path / "old.h5", per_light=True))
+    hot = [dataclasses.replace(r, per_light=r.per_light * 1e5) for r in recs]
+    with pytest.raises(ValueError, match="float16"):
+        write_shard(tmp_path / "hot.h5", dataclasses.replace(c, frames=hot))
+    assert not (tmp_path / "hot.h5").exists()

@@ -75,7 +75,8 @@ def shard_arrays(content: ShardContent, image_dtype: str = "float16", normal_dty
 
 
 def _radiance(a: np.ndarray, dtype: str, what: str) -> np.ndarray:
-    out = a.astype(dtype)
+    with np.errstate(over="ignore"):  # overflow is refused just below, with a line that says what to do
+        out = a.astype(dtype)
     if dtype == "float16" and not np.isfinite(out).all():
         raise ValueError(f"{what} radiance exceeds float16 range; use image_dtype='float32'")
     return out
