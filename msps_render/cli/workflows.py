@@ -31,7 +31,8 @@ def export_cmd(dataset: Path = typer.Argument(..., help="dataset directory rende
                format: str = typer.Option(..., "--format", "-f", help=_format_help()),
                out: Path = typer.Option(..., "--out", "-o", help="new (or empty) output directory"),
                rerender: bool = typer.Option(False, "--rerender", help="re-render per-light images from the "
-                                             "scenes stored in the shards (psfcn, diligent; needs Mitsuba)")):
+                                             "scenes stored in the shards (needs Mitsuba; only for shards "
+                                             "rendered without dataset.storage.store_per_light)")):
     """Write a dataset's whole frames as per-frame PNG16/EXR, or in the PS-FCN or DiLiGenT layout."""
 
     def go():

@@ -1,8 +1,8 @@
 """The `--out` directory of `msps render`: what is ours, is it usable, and one writer at a time.
 
 A dataset directory holds only `dataset.json` (+ its `.dataset.json.tmp`
-while being replaced) and `shards/` with `shard-NNNNN.h5` files (+
-`.shard-NNNNN.h5.tmp` while one is written).  Those are the only files the
+while being replaced), the dataset card (`card.png`, `card.json`) and `shards/`
+with `shard-NNNNN.h5` files (+ `.shard-NNNNN.h5.tmp` while one is written).  Those are the only files the
 toolkit ever deletes (`--force`, stale temporaries); anything else is the
 user's and is left alone.  A directory holding other files and no
 `dataset.json` is refused: rendering into it would mix our files with theirs.
@@ -14,10 +14,11 @@ import os
 import re
 from pathlib import Path
 
+from msps_render.dataset.card import CARD_JSON, CARD_PNG
 from msps_render.dataset.manifest import MANIFEST, SHARD_DIR
 from msps_render.errors import InputError
 
-_TOP = {MANIFEST, f".{MANIFEST}.tmp"}
+_TOP = {MANIFEST, f".{MANIFEST}.tmp", CARD_PNG, CARD_JSON}
 _SHARD = re.compile(r"shard-\d{5,}\.h5")
 _SHARD_TMP = re.compile(r"\.shard-\d{5,}\.h5\.tmp")
 
@@ -160,7 +161,8 @@ def remove_dataset(out: Path) -> None:
         for p in shards.iterdir():
             if p.is_file() and is_ours(p.relative_to(out)):
                 p.unlink()
-    (out / MANIFEST).unlink(missing_ok=True)
+    for name in (MANIFEST, CARD_PNG, CARD_JSON):  # the card describes the dataset being replaced
+        (out / name).unlink(missing_ok=True)
     remove_temporaries(out)
 
 
