@@ -84,3 +84,8 @@ def test_eval_writes_its_plots_and_the_per_object_numbers_add_up(dataset, tmp_pa
         row = next(ln for ln in r.stdout.splitlines() if ln.strip().startswith(obj + " "))
         assert f"{np.mean(maes):.2f}" in row and row.split()[-1] == str(len(maes))
     assert "mean of the object's per-frame MAEs" in r.stdout and "per_object_note" in rep
+    # format 2 beside the format-1 keys: the one-column table holds the same per-object numbers
+    assert rep["format"] == 2 and rep["table"]["methods"] == ["lambertian"] and "table.md" in r.stdout
+    rows = {r_["object"]: r_ for r_ in rep["table"]["rows"] if r_["what"] == "object"}
+    assert {o: rows[o]["mae_deg"]["lambertian"] for o in rows} == pytest.approx(cond["per_object"], abs=1e-9)
+    assert all(rows[o]["ci95_deg"]["lambertian"][0] <= cond["per_object"][o] + 1e-9 for o in rows)

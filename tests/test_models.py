@@ -373,3 +373,36 @@ def test_freeze_bn_keeps_init_statistics_and_learns_weights(tiny_dataset, tmp_pa
         train(load_model_config("cpu", base + ["train.freeze_bn=true"]), tiny_dataset, tiny_dataset,
               tmp_path / "scratch", progress=False)
     assert not (tmp_path / "scratch").exists()
+
+
+def test_short_run_validates_often_enough_for_a_curve(tiny_dataset, tmp_path):
+    """A few dozen steps still give >= 10 validation points (the cadence plans ~20 over the run), and
+    the curve figure draws them; a long run keeps `val_every`, a time budget adds time-based points."""
+    from PIL import Image
+
+    from msps_render.models.train import VAL_POINTS, ValCadence, train
+
+    cfg = load_model_config("cpu", ["train.max_steps=24", "train.batch_size=2", "train.val_max_patches=2",
+                                    "train.epochs=1000"])
+    assert cfg.train.val_every == 500  # the preset's cadence, too sparse for 24 steps
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        train(cfg, tiny_dataset, tiny_dataset, tmp_path / "run", progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    recs = [json.loads(ln) for ln in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    steps = [r["step"] for r in recs]
+    assert len(recs) >= 10 and steps == sorted(set(steps)) and steps[-1] == 24
+    assert all(np.isfinite(r["val_mae_deg"]) and r["loss"] > 0 for r in recs)
+    im = np.asarray(Image.open(tmp_path / "run" / "metrics.png").convert("L"))
+    assert im.shape[0] > 250 and im.std() > 10
+    # planning: steps budget, epochs budget, and the time trigger
+    long = load_model_config("cpu", ["train.max_steps=100000"])
+    assert ValCadence.plan(long, 10**6, float("inf"), 0.0).every == 500
+    assert ValCadence.plan(load_model_config("cpu", ["train.max_steps=400"]), 10**6, float("inf"), 0.0).every == 20
+    assert ValCadence.plan(load_model_config("cpu", ["train.epochs=2"]), 50, float("inf"), 0.0).every == 5
+    c = ValCadence.plan(long, 10**6, 600.0, 0.0)  # 10 minutes: at least every 30 s
+    assert c.seconds == 600.0 / VAL_POINTS and not c.due(7, 29.0) and c.due(7, 30.0)
+    c.done(30.0, 50.0)  # a 20 s validation: wait 4 x as long before the next time-based one
+    assert not c.due(8, 100.0) and c.due(8, 130.0) and c.due(500, 51.0)

@@ -152,8 +152,10 @@ def _error_hist(report: dict, out: Path) -> Path:
             if hs:
                 curves.append((n, np.sum(hs, 0), styles[n]))
     else:
-        for i, (cond, c) in enumerate(report["methods"][names[0]]["conditions"].items()):
-            curves.append((cond or names[0], np.asarray(c["patches"].get("hist_deg", []), np.float64),
+        conds = report["methods"][names[0]]["conditions"]
+        for i, (cond, c) in enumerate(conds.items()):
+            curves.append((cond if len(conds) > 1 else names[0], np.asarray(c["patches"].get("hist_deg", []),
+                                                                             np.float64),
                            {"color": f"C{i % 10}", "ls": "-"}))
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
     for label, h, st in curves:
@@ -169,7 +171,9 @@ def _error_hist(report: dict, out: Path) -> Path:
               title="cumulative" + px)
     for a in ax:
         a.grid(alpha=0.3)
-    _legend(ax[1], title="method" if len(names) > 1 else f"{names[0]}: condition", title_fontsize=8)
+        a.title.set_fontsize(9)
+    single = len(names) == 1 and len(curves) == 1
+    _legend(ax[1], title=None if single else "method" if len(names) > 1 else "condition", title_fontsize=8)
     fig.suptitle(_title(report, "Angular error of patch pixels"), fontsize=10)
     fig.tight_layout()
     fig.savefig(out / "error_hist.png", dpi=DPI)
@@ -260,7 +264,7 @@ def _robustness(report: dict, out: Path) -> Path:
     label = (rb.get("key") or "condition").split(".")[-1]
     ticks = [f"{values[c]:g}" if numeric else (c or "all") for c in conds]
     counts = [first["conditions"][c]["patches"] for c in conds]
-    ticks = [f"{t}\n{p.get('n_frames', '?')} fr / {p.get('n_patches', '?')} p" for t, p in zip(ticks, counts)]
+    ticks = [f"{t}\n{p.get('n_frames', '?')} fr\n{p.get('n_patches', '?')} p" for t, p in zip(ticks, counts)]
     span = float(np.ptp(xs)) or 1.0
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.0))
     for j, n in enumerate(names):
@@ -280,7 +284,7 @@ def _robustness(report: dict, out: Path) -> Path:
         a.grid(alpha=0.3)
         if ref in conds:
             a.axvline(xs[conds.index(ref)], color="0.6", lw=0.8, ls=":")
-    xlabel = f"{label}   (below each value: n frames / patches)"
+    xlabel = f"{label}   (below each value: n frames, n patches)"
     ax[0].set(xlabel=xlabel, ylabel="MAE of patch pixels (deg)", title="MAE, 95 % CI (bootstrap over frames)")
     ax[0].set_ylim(bottom=0)
     ax[0].title.set_fontsize(9)
