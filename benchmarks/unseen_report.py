@@ -10,6 +10,10 @@ dataset with the first frame of every object: image, ground truth, each method.
     python benchmarks/unseen_report.py --data data/unseen-test --data data/unseen-test-grey \
         --model dual=runs/dual/best.pt --model scn=runs/scn/best.pt --model pcn=runs/pcn/best.pt \
         --out runs/report
+
+The per-object table (with 95 % CIs, patch-level numbers and figures) is also what one
+`msps eval --data D --checkpoint dual=... --checkpoint scn=... --method lambertian` writes
+(table.md, metrics.json); this script adds the normal-map sheet and several datasets at once.
 """
 from __future__ import annotations
 
@@ -22,17 +26,11 @@ import numpy as np
 
 
 def _predictors(models: list[str]):
-    from msps_render.models.baseline import lambertian_ps
-    from msps_render.models.predict import predict_image
-    from msps_render.models.checkpoint import load_checkpoint
+    """NAME=PATH checkpoints and the baseline, as `msps eval` loads them (msps_render.models.evaluate)."""
+    from msps_render.models.evaluate import checkpoint_method, lambertian_method
 
-    out = {}
-    for spec in models:
-        name, path = spec.split("=", 1)
-        model = load_checkpoint(path)[0]
-        out[name] = (lambda m: (lambda fr: predict_image(m, fr.image, fr.mask)))(model)
-    out["lambertian"] = lambda fr: lambertian_ps(fr.image, fr.light_dirs, fr.crosstalk, fr.mask)
-    return out
+    methods = [checkpoint_method(path, name) for name, path in (spec.split("=", 1) for spec in models)]
+    return {m.name: m.frame for m in methods + [lambertian_method()]}
 
 
 def report(data: Path, preds: dict) -> tuple[dict, list]:
