@@ -40,10 +40,12 @@ def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAM
 @clean_errors
 def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)"),
              out: Path = typer.Option(..., help="report directory"),
-             checkpoint: List[str] = typer.Option([], help="checkpoint PATH or NAME=PATH; repeat to compare "
+             checkpoint: List[str] = typer.Option([], metavar="[NAME=]PATH",
+                                                  help="checkpoint PATH or NAME=PATH; repeat to compare "
                                                   "several (unnamed: net, or scn/pcn for ablations; default: "
                                                   "models/dualcue-cpu.pt)"),
-             method: List[str] = typer.Option([], help="net (the checkpoints) or lambertian (the baseline); "
+             method: List[str] = typer.Option([], metavar="net|lambertian",
+                                              help="net (the checkpoints) or lambertian (the baseline); "
                                               "repeatable: --method lambertian beside --checkpoint compares "
                                               "both (default: net)"),
              max_patches: Optional[int] = typer.Option(None, help="limit per condition")):

@@ -344,7 +344,8 @@ def _compare_lines(report: dict) -> list[str]:
     fmt = lambda cells: "  ".join(f"{c:<{w}}" if i < 3 else f"{c:>{w}}" for i, (c, w) in enumerate(zip(cells, widths)))
     lines = [f"MAE (deg) on {report['dataset']}, every method on the same patches and frames:", fmt(head)]
     lines += [fmt(b) for b in body]
-    lines.append(PER_OBJECT_NOTE + "; 95 % CIs in table.md and metrics.json")
+    has_obj = any(r["what"] == "object" for r in t["rows"])
+    lines.append((PER_OBJECT_NOTE + "; " if has_obj else "") + "95 % CIs in table.md and metrics.json")
     for n in names:
         rb = report["methods"][n].get("robustness")
         if rb:
