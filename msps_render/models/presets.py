@@ -28,7 +28,9 @@ class TrainSection(StrictModel):
     max_steps: int = Field(100000, ge=1, description="optimizer steps budget")
     max_minutes: float | None = Field(None, gt=0, description="wall-clock budget (min); unset: none")
     schedule: Literal["constant", "cosine"] = Field("cosine", description="learning-rate schedule")
-    val_every: int = Field(500, ge=1, description="validate and record metrics every N steps")
+    val_every: int = Field(500, ge=1, description="validate and record metrics at least every N steps (denser "
+                                                  "when the planned run would give fewer than 20 points, and "
+                                                  "after max_minutes/20 without one)")
     val_max_patches: int = Field(2000, ge=1, description="validation patches per check")
     seed: int = Field(0, description="seed of initialisation and data order")
     num_workers: int = Field(0, ge=0, description="DataLoader worker processes")
