@@ -191,8 +191,11 @@ def test_sensor_config_validation():
 
     from msps_render.render.sensor import SensorConfig
 
+    assert SensorConfig(bits=10).bits == 10  # 8/10/12/16-bit sensors (issue 20)
     with pytest.raises(ValidationError):
-        SensorConfig(bits=10)
+        SensorConfig(bits=11)
+    with pytest.raises(ValidationError):
+        SensorConfig(bits_choices=[8, 11])
     with pytest.raises(ValidationError):
         SensorConfig(exposure=-1.0)
     from msps_render.pipeline.config import DatasetConfig
