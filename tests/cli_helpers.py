@@ -18,3 +18,24 @@ def one_line_error(r: subprocess.CompletedProcess) -> str:
     assert r.returncode == 1, (r.returncode, r.stderr[-2000:])
     assert len(lines) == 1 and lines[0].startswith("error: "), r.stderr[-2000:]
     return lines[0]
+
+
+def render_tiny(config_text: str, tmp, name: str = "ds"):
+    """Render a tiny dataset from TOML text into tmp/name in this process (one worker, LLVM);
+    skips where only a scalar variant exists (rendering would take minutes)."""
+    from pathlib import Path
+
+    import pytest
+
+    from msps_render.pipeline.config import load_config
+    from msps_render.pipeline.run import render_dataset
+    from msps_render.render.variant import resolve_variant
+
+    v = resolve_variant("rgb")
+    if not v.startswith("llvm"):
+        pytest.skip("LLVM variant unavailable: rendering would be too slow")
+    tmp = Path(tmp)
+    cfg = tmp / f"{name}.toml"
+    cfg.write_text(config_text)
+    render_dataset(load_config(cfg), tmp / name, workers=1, progress=False, variant=v)
+    return tmp / name

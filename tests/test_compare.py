@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cli_helpers import render_tiny
+
 torch = pytest.importorskip("torch")
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,16 +51,8 @@ def setup(tmp_path_factory) -> dict:
     from msps_render.models.checkpoint import save_checkpoint
     from msps_render.models.net import DualCueNet
     from msps_render.models.presets import load_model_config
-    from msps_render.pipeline.config import load_config
-    from msps_render.pipeline.run import render_dataset
-    from msps_render.render.variant import resolve_variant
-
-    v = resolve_variant("rgb")
-    if not v.startswith("llvm"):
-        pytest.skip("LLVM variant unavailable: rendering would be too slow")
     tmp = tmp_path_factory.mktemp("compare")
-    (tmp / "s.toml").write_text(SWEEP)
-    render_dataset(load_config(tmp / "s.toml"), tmp / "ds", workers=1, progress=False, variant=v)
+    render_tiny(SWEEP, tmp)
     cks = {}
     for name, ov, seed in (("a", [], 0), ("b", [], 1), ("s", ["net.mode=scn"], 2)):
         torch.manual_seed(seed)

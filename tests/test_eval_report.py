@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cli_helpers import render_tiny
+
 pytest.importorskip("torch")
 
 TINY = """
@@ -38,17 +40,7 @@ max_depth = 3
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
-    from msps_render.pipeline.config import load_config
-    from msps_render.pipeline.run import render_dataset
-    from msps_render.render.variant import resolve_variant
-
-    v = resolve_variant("rgb")
-    if not v.startswith("llvm"):
-        pytest.skip("LLVM variant unavailable: rendering would be too slow")
-    tmp = tmp_path_factory.mktemp("eval")
-    (tmp / "t.toml").write_text(TINY)
-    render_dataset(load_config(tmp / "t.toml"), tmp / "ds", workers=1, progress=False, variant=v)
-    return tmp / "ds"
+    return render_tiny(TINY, tmp_path_factory.mktemp("eval"))
 
 
 def test_eval_writes_its_plots_and_the_per_object_numbers_add_up(dataset, tmp_path):

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import cli, one_line_error
+from cli_helpers import cli, one_line_error, render_tiny
 from msps_render.dataset import schema as K  # the shard's HDF5 keys
 from msps_render.errors import InputError
 
@@ -41,18 +41,7 @@ STEP8 = 0.51 / 255
 
 
 def _render(tmp: Path, frames: bool) -> Path:
-    from msps_render.pipeline.config import load_config
-    from msps_render.pipeline.run import render_dataset
-    from msps_render.render.variant import resolve_variant
-
-    v = resolve_variant("rgb")
-    if not v.startswith("llvm"):
-        pytest.skip("LLVM variant unavailable: rendering would be too slow")
-    cfg_path = tmp / f"tiny-{frames}.toml"
-    cfg_path.write_text(TINY.format(frames=str(frames).lower()))
-    out = tmp / f"ds-{frames}"
-    render_dataset(load_config(cfg_path), out, workers=1, progress=False, variant=v)
-    return out
+    return render_tiny(TINY.format(frames=str(frames).lower()), tmp, f"ds-{frames}")
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import cli, one_line_error
+from cli_helpers import cli, one_line_error, render_tiny
 from msps_render.dataset import schema as K
 
 TINY = """
@@ -53,18 +53,7 @@ STEP8 = 0.51 / 255
 
 
 def _render(tmp: Path, per_light: bool) -> Path:
-    from msps_render.pipeline.config import load_config
-    from msps_render.pipeline.run import render_dataset
-    from msps_render.render.variant import resolve_variant
-
-    v = resolve_variant("rgb")
-    if not v.startswith("llvm"):
-        pytest.skip("LLVM variant unavailable: rendering would be too slow")
-    cfg = tmp / f"tiny-{per_light}.toml"
-    cfg.write_text(TINY.format(per_light=str(per_light).lower()))
-    out = tmp / f"ds-{per_light}"
-    render_dataset(load_config(cfg), out, workers=1, progress=False, variant=v)
-    return out
+    return render_tiny(TINY.format(per_light=str(per_light).lower()), tmp, f"ds-{per_light}")
 
 
 @pytest.fixture(scope="module")
