@@ -8,7 +8,7 @@
 set -euo pipefail
 DATA=${1:-data}
 RUNS=${2:-runs}
-MINUTES=${3:-80}
+MINUTES=${3:-65}
 MSPS=${MSPS:-.venv/bin/msps}
 PY=${PY:-.venv/bin/python}
 R="--resume --quiet"
@@ -25,26 +25,28 @@ for set in unseen-test unseen-test-grey unseen-test-colour unseen-test-texture u
   $MSPS render $set --out "$DATA/$set" --workers 2 $R
 done
 
-# 2. fine-tune v0.4 on the colour corpora + the grey and blob corpora of stage 5 (BatchNorm statistics
+# 2. stage 6a: fine-tune v0.4 on the colour corpora + the grey and blob corpora of stage 5 (BatchNorm statistics
 #    frozen, i.i.d. batches over the whole mix), lr 2e-4 cosine over MINUTES
 resume=""; [ -f "$RUNS/colour/last.pt" ] && resume="--resume"
-$MSPS train cpu --data "$DATA/train-colour" --data "$DATA/train-colour-env" --data "$DATA/train-grey-30" \
+$MSPS train cpu --threads 2 --data "$DATA/train-colour" --data "$DATA/train-colour-env" --data "$DATA/train-grey-30" \
   --data "$DATA/blobs-48" --val "$DATA/val" --init models/dualcue-cpu-v0.4.pt --out "$RUNS/colour" $resume \
   --set train.freeze_bn=true --set train.shuffle_window=0 --set train.cache=true \
   --set train.max_minutes=$MINUTES --set train.lr=2e-4 --set train.val_every=500 --set train.val_max_patches=1500
 NEW="$RUNS/colour/last.pt"
+# stage 6b (measured, not shipped): a short grey-heavy last stage
+resume=""; [ -f "$RUNS/colour-grey/last.pt" ] && resume="--resume"
+$MSPS train cpu --data "$DATA/train-grey-30" --data "$DATA/blobs-48" --data "$DATA/train-colour" --val "$DATA/val" \
+  --init "$NEW" --out "$RUNS/colour-grey" $resume --set train.freeze_bn=true --set train.shuffle_window=0 \
+  --set train.cache=true --set train.max_minutes=13 --set train.lr=1e-4 --set train.val_every=500 \
+  --set train.val_max_patches=1500
 
 # 3. evaluation: v0.5 candidate vs v0.4 vs Lambertian on every unseen set, rigs, real captures
 MODELS=(--model new="$NEW" --model v0.4=models/dualcue-cpu-v0.4.pt)
 $PY benchmarks/unseen_report.py --data "$DATA/unseen-test" --data "$DATA/unseen-test-grey" \
   --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-texture" "${MODELS[@]}" --out "$RUNS/report-colour"
-for set in unseen-robust-env unseen-rig-crosstalk unseen-rig-jitter; do
-  for m in new:"$NEW" v0.4:models/dualcue-cpu-v0.4.pt; do
-    [ -f "$RUNS/eval-$set-${m%%:*}/metrics.json" ] || \
-      $MSPS eval --data "$DATA/$set" --checkpoint "${m#*:}" --out "$RUNS/eval-$set-${m%%:*}"
-  done
-  [ -f "$RUNS/eval-$set-lambertian/metrics.json" ] || \
-    $MSPS eval --data "$DATA/$set" --method lambertian --out "$RUNS/eval-$set-lambertian"
+for set in unseen-robust-env unseen-rig-crosstalk unseen-rig-jitter; do  # all methods in one report each
+  [ -f "$RUNS/eval-$set/metrics.json" ] || $MSPS eval --data "$DATA/$set" --checkpoint new="$NEW" \
+    --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --method lambertian --out "$RUNS/eval-$set"
 done
 [ -f "$RUNS/real/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real" \
   --checkpoint new="$NEW" --checkpoint v0.4=models/dualcue-cpu-v0.4.pt
