@@ -263,6 +263,11 @@ def _robustness(report: dict, out: Path) -> Path:
     xs = np.array([float(values[c]) for c in conds]) if numeric else np.arange(len(conds), dtype=float)
     label = (rb.get("key") or "condition").split(".")[-1]
     ticks = [f"{values[c]:g}" if numeric else (c or "all") for c in conds]
+    key_lines = []
+    if max(len(t) for t in ticks) > 14:  # e.g. a swept matrix: short tick names, the values in a key below
+        key_lines = [f"c{i}: {t}" for i, t in enumerate(ticks)]
+        ticks = [f"c{i}" for i in range(len(ticks))]
+    ref_label = ticks[conds.index(rb["reference"])] if rb.get("reference") in conds else rb.get("reference")
     counts = [first["conditions"][c]["patches"] for c in conds]
     ticks = [f"{t}\n{p.get('n_frames', '?')} fr\n{p.get('n_patches', '?')} p" for t, p in zip(ticks, counts)]
     span = float(np.ptp(xs)) or 1.0
@@ -288,12 +293,15 @@ def _robustness(report: dict, out: Path) -> Path:
     ax[0].set(xlabel=xlabel, ylabel="MAE of patch pixels (deg)", title="MAE, 95 % CI (bootstrap over frames)")
     ax[0].set_ylim(bottom=0)
     ax[0].title.set_fontsize(9)
-    ax[1].set(xlabel=xlabel, ylabel="fluctuation ratio α", title=f"α = |χ − χ′| / χ vs reference {ref}")
+    ax[1].set(xlabel=xlabel, ylabel="fluctuation ratio α", title=f"α = |χ − χ′| / χ vs reference {ref_label}")
     ax[1].set_ylim(bottom=0)
     ax[1].title.set_fontsize(9)
     _legend(ax[1])
     fig.suptitle(_title(report, "Robustness"), fontsize=10)
     fig.tight_layout()
+    if key_lines:
+        fig.subplots_adjust(bottom=0.22 + 0.05 * len(key_lines))
+        fig.text(0.01, 0.01, "\n".join(key_lines), fontsize=7, family="monospace", va="bottom")
     fig.savefig(out / "robustness.png", dpi=DPI)
     plt.close(fig)
     return out / "robustness.png"
