@@ -35,8 +35,10 @@ def test_paper_presets_match_the_paper():
 
 TEST_MESH_DIR = "shared/data/meshes"
 UNSEEN = ("unseen-test", "unseen-test-grey", "unseen-robust-env", "unseen-robust-slant",
-          "unseen-test-colour", "unseen-test-texture", "unseen-rig-crosstalk", "unseen-rig-jitter")
-ANALYTIC_UNSEEN = ("unseen-test-colour", "unseen-test-texture", "unseen-rig-crosstalk", "unseen-rig-jitter")
+          "unseen-test-colour", "unseen-test-texture", "unseen-test-smooth", "unseen-test-patches",
+          "unseen-rig-crosstalk", "unseen-rig-jitter")
+ANALYTIC_UNSEEN = ("unseen-test-colour", "unseen-test-texture", "unseen-test-smooth", "unseen-test-patches",
+                   "unseen-rig-crosstalk", "unseen-rig-jitter")
 
 
 @pytest.mark.parametrize("name", [p for p in PRESETS if p not in UNSEEN])
@@ -67,6 +69,9 @@ def test_unseen_presets_use_test_meshes_and_held_out_materials(name):
         assert cfg.scene.materials.families == ["diffuse"] and cfg.scene.materials.merl_fraction == 0
         assert cfg.scene.materials.albedo == "full" and cfg.scene.materials.max_count == 1
         assert cfg.dataset.seed == load_config("unseen-test-grey").dataset.seed  # the grey test's poses
+        if name in ("unseen-test-smooth", "unseen-test-patches"):  # one texture kind each (issue 20's targets)
+            assert cfg.scene.materials.texture.kinds == [name.rsplit("-", 1)[1]]
+            assert cfg.scene.materials.texture.fraction == 1.0
     else:
         assert cfg.scene.materials.holdout == "test" and cfg.scene.materials.merl_fraction == 1.0
 
