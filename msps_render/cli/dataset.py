@@ -18,8 +18,10 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
                seed: Optional[int] = typer.Option(None, help="root seed (overrides dataset.seed)"),
                workers: int = typer.Option(1, help="local worker processes (or Dask LocalCluster size)"),
                scheduler: Optional[str] = typer.Option(None, help="'dask-local' or tcp://host:8786"),
-               resume: bool = typer.Option(False, help="skip complete shards, redo partial ones"),
-               force: bool = typer.Option(False, help="replace a dataset made with another config"),
+               resume: bool = typer.Option(False, help="finish the dataset in --out with the config stored in its "
+                                                       "dataset.json (no --set needed; one that differs is refused)"),
+               force: bool = typer.Option(False, help="delete the finished shards in --out (the toolkit's files "
+                                                      "only) and render this config from scratch"),
                set_: List[str] = typer.Option([], "--set", help="override, e.g. lights.slant_deg=25"),
                variant: Optional[str] = typer.Option(None, help="Mitsuba variant"),
                threads: Optional[int] = typer.Option(None, help="render threads per worker (default: cores / workers)"),
