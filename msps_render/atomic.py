@@ -13,6 +13,21 @@ def temp_name(path: str | Path) -> Path:
     return p.with_name(f".{p.name}.tmp")
 
 
+def fsync_dir(d: str | Path) -> None:
+    """fsync a directory so a rename into it survives a power cut (the rename lives in the directory's
+    entries, not in the file).  Skipped where directories cannot be opened (Windows)."""
+    try:
+        fd = os.open(d, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # some filesystems (e.g. certain FUSE mounts) refuse fsync on a directory
+        pass
+    finally:
+        os.close(fd)
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | Path, unique: bool = False) -> Iterator[Path]:
     """Yield a temporary path next to `path`; on success fsync it and rename it over `path`.
@@ -28,6 +43,7 @@ def atomic_write(path: str | Path, unique: bool = False) -> Iterator[Path]:
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
+        fsync_dir(path.parent)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

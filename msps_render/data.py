@@ -26,6 +26,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from msps_render.dataset import (SHARD_DIR, WholeFrame, iter_whole_frames, load_manifest, open_shard,
                                  read_calibration, read_patch_layout, read_patches, read_patches_into,
                                  read_shard_patches, shard_errors, verify_dataset)
+from msps_render.dataset.manifest import at_fault
 from msps_render.errors import InputError
 
 _ALIGN = 64  # byte alignment of the arrays inside a slot
@@ -103,7 +104,7 @@ class PatchDataset(Dataset):
                 bad = verify_dataset(r)
                 if bad:
                     name, probs = sorted(bad.items())[0]
-                    raise InputError(r / SHARD_DIR / name, f"fails verification: {'; '.join(probs)}")
+                    raise InputError(at_fault(r, name), f"fails verification: {'; '.join(probs)}")
             self.shards += _shard_list(r, condition)
         counts = np.array([n for _, n, _ in self.shards], dtype=np.int64)
         self.offsets = np.concatenate([[0], np.cumsum(counts)])

@@ -53,8 +53,19 @@ def show_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.to
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.describe import describe, plan_text
 
+    from msps_render.pipeline.run import patch_grid_warning, zero_patch_cause
+
     cfg = load_config(config, list(set_))
+    warning = patch_grid_warning(cfg)
+    if warning:  # before the (optional) probe: the user sees it without rendering anything
+        typer.echo(f"warning: {warning}", err=True)
     desc = describe(cfg, probe=probe, variant=variant, threads=threads, masks=masks)
+    if desc.estimate is not None and desc.estimate.exact and desc.estimate.patches == 0:
+        typer.echo(f"warning: this config yields 0 patches (every frame counted): {zero_patch_cause(cfg)}; "
+                   "`msps render` would fail", err=True)
+    elif desc.estimate is not None and desc.estimate.patches == 0:
+        typer.echo(f"warning: the {desc.estimate.mask_frames} frames counted yield 0 patches: "
+                   f"{zero_patch_cause(cfg)}", err=True)
     if as_json:
         typer.echo(json.dumps(desc.to_dict(), indent=2, default=str))
         return

@@ -18,8 +18,10 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
                seed: Optional[int] = typer.Option(None, help="root seed (overrides dataset.seed)"),
                workers: int = typer.Option(1, help="local worker processes (or Dask LocalCluster size)"),
                scheduler: Optional[str] = typer.Option(None, help="'dask-local' or tcp://host:8786"),
-               resume: bool = typer.Option(False, help="skip complete shards, redo partial ones"),
-               force: bool = typer.Option(False, help="replace a dataset made with another config"),
+               resume: bool = typer.Option(False, help="finish the dataset in --out with the config stored in its "
+                                                       "dataset.json (no --set needed; one that differs is refused)"),
+               force: bool = typer.Option(False, help="delete the finished shards in --out (the toolkit's files "
+                                                      "only) and render this config from scratch"),
                set_: List[str] = typer.Option([], "--set", help="override, e.g. lights.slant_deg=25"),
                variant: Optional[str] = typer.Option(None, help="Mitsuba variant"),
                threads: Optional[int] = typer.Option(None, help="render threads per worker (default: cores / workers)"),
@@ -27,29 +29,37 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
                quiet: bool = typer.Option(False, help="no progress bar")):
     """Render a dataset of HDF5 patch shards."""
     from msps_render.pipeline.config import load_config
-    from msps_render.pipeline.run import render_dataset
+    from msps_render.pipeline.run import config_difference, render_dataset, resume_config
 
     overrides = list(set_) + ([f"dataset.seed={seed}"] if seed is not None else [])
     cfg = load_config(config, overrides)
+    note = ""
+    if resume:  # finish what the dataset was started with: no --set needs retyping
+        stored = resume_config(out, overrides)
+        if stored is not None:
+            diff = config_difference(stored.model_dump(mode="json"), cfg.model_dump(mode="json"))
+            if diff:
+                note = f"; resumed with the config stored in dataset.json, not {config} as given ({diff})"
+            cfg = stored
     m = render_dataset(cfg, out, workers=workers, scheduler=scheduler, resume=resume, force=force,
                        variant=variant, threads=threads, progress=not quiet,
                        recycle_after=recycle_after or None)
     card = f"; card: {out / 'card.png'}" if m["complete"] and (out / "card.png").is_file() else ""
-    typer.echo(f"{out}: {len(m['shards'])} shards, {m['n_patches']} patches, complete={m['complete']}{card}")
+    typer.echo(f"{out}: {len(m['shards'])} shards, {m['n_patches']} patches, complete={m['complete']}{card}{note}")
 
 
 @app.command("verify")
 @clean_errors
 def verify_cmd(root: Path = typer.Argument(..., help="dataset directory")):
     """Check every shard: complete, checksums, finite, unit normals, consistent masks. Exit 1 if bad."""
-    from msps_render.dataset.verify import verify_dataset
+    from msps_render.dataset.verify import dataset_status
 
-    bad = verify_dataset(root)
-    if bad:
-        for name, probs in sorted(bad.items()):
-            typer.echo(f"BAD {root / 'shards' / name}: {'; '.join(probs)}", err=True)
+    st = dataset_status(root, deep=True)
+    if not st.ok:
+        for line in st.lines():
+            typer.echo(line, err=True)
         raise typer.Exit(1)
-    typer.echo(f"{root}: all shards OK")
+    typer.echo(f"{root}: all {st.recorded} shards OK, complete, {st.n_patches} patches")
 
 
 @app.command("inspect")
@@ -60,13 +70,17 @@ def inspect_cmd(path: Path = typer.Argument(..., help="dataset directory or shar
     from rich.table import Table
 
     from msps_render.dataset import read_manifest, shard_summary
+    from msps_render.dataset.reader import shard_errors
+    from msps_render.dataset.verify import dataset_status
 
     con = Console()
     if path.is_dir():
         m = read_manifest(path)
         if m is None:
             raise InputError(path, "no dataset.json here")
-        t = Table(title=f"{path} (config {m['config_hash'][:12]}, seed {m['seed']}, complete={m['complete']})")
+        st = dataset_status(path, deep=False)  # the same definition as verify and train, without hashing
+        t = Table(title=f"{path} (config {m.get('config_hash', '?')[:12]}, seed {m.get('seed')}, "
+                        f"complete={st.complete})")
         for c in ("shard", "condition", "frames", "patches", "render s", "wall s"):
             t.add_column(c)
         for name, e in sorted(m["shards"].items()):
@@ -75,8 +89,13 @@ def inspect_cmd(path: Path = typer.Argument(..., help="dataset directory or shar
         con.print(t)
         con.print(f"total patches: {sum(e['n_patches'] for e in m['shards'].values())}; "
                   f"versions: {json.dumps(m.get('versions', {}))}")
+        if not st.ok:
+            for line in st.lines(limit=5):
+                typer.echo(line, err=True)
+            raise typer.Exit(1)
     elif path.is_file():
-        info = shard_summary(path)
+        with shard_errors(path):
+            info = shard_summary(path)
         t = Table(title=str(path))
         t.add_column("dataset")
         t.add_column("shape")

@@ -142,12 +142,41 @@ def training_lights(roots) -> dict | None:
             "source": "training data manifests"}
 
 
+RESUME_HINT = "finish it with `msps render CONFIG --out DIR --resume`"
+
+
+def at_fault(root: str | Path, name: str) -> Path:
+    """The file a status problem is about: a shard, or (name == MANIFEST) the manifest itself."""
+    return manifest_path(root) if name == MANIFEST else shard_path(root, name)
+
+
+def manifest_problems(m: dict) -> dict[str, list[str]]:
+    """Why the manifest `m` does not describe a complete dataset: {shard name | MANIFEST: problems}.
+
+    The one definition every status command shares (`dataset.verify.dataset_status` adds the
+    files): complete = every planned shard recorded and the render's own `complete` flag set
+    (a render stopped by SIGTERM after its last shard leaves it unset)."""
+    shards = m.get("shards") or {}
+    probs: dict[str, list[str]] = {}
+    for name in m.get("planned_shards", list(shards)):
+        if name not in shards:
+            probs[name] = [f"not rendered ({RESUME_HINT})"]
+    if not probs and not m.get("complete", False):
+        probs[MANIFEST] = [f"the render did not finish (dataset.json says complete=false; {RESUME_HINT})"]
+    return probs
+
+
 def load_manifest(root: str | Path, need_complete: bool = True) -> Manifest:
-    """The typed manifest of a dataset directory; `InputError` if there is none (or it is incomplete)."""
+    """The typed manifest of a dataset directory; `InputError` if there is none (or it is incomplete,
+    naming the first shard at fault)."""
     root = Path(root)
     m = read_manifest(root)
     if m is None:
         raise InputError(root, "no dataset.json here (not a dataset directory)")
-    if need_complete and not m.get("complete", False):
-        raise InputError(root, "dataset is incomplete (finish it with `msps render ... --resume`)")
+    if need_complete:
+        probs = manifest_problems(m)
+        if probs:
+            name = sorted(probs)[0]
+            more = f" (and {len(probs) - 1} more)" if len(probs) > 1 else ""
+            raise InputError(at_fault(root, name), f"dataset is incomplete: {probs[name][0]}{more}")
     return Manifest.from_dict(root, m)

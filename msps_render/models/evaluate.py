@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from msps_render.atomic import atomic_write
 from msps_render.dataset import Manifest, load_manifest
 from msps_render.errors import InputError
 from msps_render.models.baseline import lambertian_ps
@@ -264,7 +265,8 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
     if any(c.get("per_object") for v in per.values() for c in v["conditions"].values()):
         report["per_object_note"] = PER_OBJECT_NOTE
     out.mkdir(parents=True, exist_ok=True)
-    (out / "metrics.json").write_text(json.dumps(report, indent=1))
+    with atomic_write(out / "metrics.json") as tmp:  # a crash leaves the old metrics.json or the new one
+        tmp.write_text(json.dumps(report, indent=1))
     report["files"] = [str(out / "metrics.json")] + [str(p) for p in write_tables(report, out)] + \
         [str(p) for p in write_plots(report, out)]
     return report

@@ -40,6 +40,23 @@ class WorkerSettings:
     out_dir: str
     variant: str
     threads: int | None = None
+    material_pool: dict | None = None  # {condition: {material: digest}} the manifest records (None: unchecked)
+
+
+def check_material_pool(task: Task, ws: WorkerSettings, cfg: DatasetConfig) -> None:
+    """Stop before rendering when this worker's host would draw from another measured-material pool
+    than the dataset records (other MERL files, other built-in fits): shards would silently differ."""
+    if ws.material_pool is None:
+        return
+    from msps_render.brdf.library import material_pool, pool_difference
+
+    why = pool_difference(ws.material_pool.get(task.condition, {}), material_pool(cfg.scene.materials))
+    if why:
+        import socket
+
+        raise InputError(f"{task.name} on {socket.gethostname()}",
+                         f"this worker sees other measured materials than the dataset records ({why}); "
+                         "give every worker the same MSPS_MERL_DIR / brdf/ files")
 
 
 def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None) -> dict:
@@ -49,6 +66,7 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
     the shard's write is shared out evenly over its frames.
     """
     cfg = DatasetConfig.model_validate_json(task.config_json)
+    check_material_pool(task, ws, cfg)
     d = cfg.dataset
     t0 = time.perf_counter()
     render_s = 0.0
@@ -106,7 +124,8 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
         share = (time.perf_counter() - tw) / len(frames)
         for f in timer.frames[-len(frames):]:
             f["write"] = f.get("write", 0.0) + share
-    info.update(condition=task.condition, render_seconds=render_s, wall_seconds=time.perf_counter() - t0)
+    info.update(condition=task.condition, render_seconds=render_s, wall_seconds=time.perf_counter() - t0,
+                bytes=out.stat().st_size)  # lets status commands spot a truncated shard without hashing it
     return info
 
 
@@ -345,16 +364,22 @@ class WorkerPool:
                     w.send(pending.popleft(), ws)
 
     def drain(self, on_done: OnDone) -> None:
-        """After an interrupt: record results already sent by workers (nothing else)."""
+        """After an interrupt: record results already sent by workers (nothing else).
+
+        A dead worker's pipe is skipped; an error of `on_done` itself (a manifest that cannot be
+        written) propagates: the caller must not report shards as kept that were never recorded."""
         for w in self.workers:
-            try:
-                while w.task is not None and w.conn.poll(0):
+            while w.task is not None:
+                try:
+                    if not w.conn.poll(0):
+                        break
                     msg = w.conn.recv()
-                    if msg and msg[0] == "ok":
-                        task, w.task = w.task, None
-                        on_done(task, msg[2])
-            except (EOFError, OSError, Exception):
-                continue
+                except (EOFError, OSError):
+                    break
+                if not (msg and msg[0] == "ok"):
+                    break
+                task, w.task = w.task, None
+                on_done(task, msg[2])
 
     def kill(self) -> None:
         """SIGKILL every worker now (errors, interrupts); results already sent stay readable."""
@@ -399,12 +424,19 @@ def run_dask(tasks: Iterable[Task], ws: WorkerSettings, scheduler: str, workers:
 
         for name in ("distributed", "distributed.worker", "distributed.worker.state_machine"):
             logging.getLogger(name).setLevel(logging.CRITICAL)
+        outstanding = [f for f in futs if f.key not in recorded and f.status != "finished"]
+        if outstanding:  # stop the cluster from rendering shards nobody will record
+            try:
+                client.cancel(outstanding)
+            except Exception:  # noqa: BLE001 - a lost scheduler: closing the client below ends them
+                pass
         for f, t in futs.items():
             if f.key not in recorded and f.status == "finished":
                 try:
-                    on_done(t, f.result(timeout=1))
-                except Exception:
-                    pass
+                    info = f.result(timeout=1)
+                except Exception:  # noqa: BLE001 - the result is gone: --resume re-renders that shard
+                    continue
+                on_done(t, info)  # a failed manifest write surfaces
         raise
     finally:
         client.close()

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import contextlib
+import copy
+import json
 import os
 import signal
 import threading
@@ -12,7 +14,9 @@ import msps_render
 from msps_render.dataset import file_digest
 from msps_render.dataset.manifest import MANIFEST, SHARD_DIR, new_manifest, read_manifest, write_manifest
 from msps_render.errors import InputError, Interrupted
-from msps_render.pipeline.config import DatasetConfig, config_hash, config_json
+from msps_render.brdf.library import material_pool, pool_difference
+from msps_render.config_io import apply_overrides
+from msps_render.pipeline.config import (DatasetConfig, _qualify, config_hash, config_json, validate_config)
 from msps_render.pipeline.execute import WorkerSettings, run_dask, run_local
 from msps_render.pipeline.outdir import (OutLock, check_out_dir, remove_dataset, remove_if_empty,
                                          remove_temporaries, remove_unrecorded)
@@ -21,8 +25,100 @@ from msps_render.pipeline.validate import validate_inputs
 from msps_render.render.variant import mitsuba_info, resolve_variant
 
 
+def _dist_version(name: str) -> str | None:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(name)
+    except PackageNotFoundError:
+        return None
+
+
 def _versions(variant: str) -> dict:
-    return {"msps": msps_render.__version__, "mitsuba": mitsuba_info()["mitsuba"], "variant": variant}
+    return {"msps": msps_render.__version__, "mitsuba": mitsuba_info()["mitsuba"], "drjit": _dist_version("drjit"),
+            "variant": variant}
+
+
+# Keys of `versions` a resume must match: shards of one dataset come from one renderer.
+RENDERER_KEYS = ("variant", "mitsuba", "drjit")
+
+
+def renderer_difference(stored: dict, here: dict) -> str | None:
+    """None if `here` renders like `stored` (keys the older manifest lacks are not compared), else
+    'stored X vs here Y' naming both."""
+    keys = [k for k in RENDERER_KEYS if stored.get(k) is not None and stored.get(k) != here.get(k)]
+    if not keys:
+        return None
+
+    def desc(v: dict) -> str:
+        return ", ".join(f"{k} {v.get(k)}" for k in keys)
+
+    return f"rendered with {desc(stored)}, this run would use {desc(here)}"
+
+
+def pools_of(tasks) -> dict[str, dict[str, str]]:
+    """{condition: {material: content digest}}: the measured-material pool each condition draws from
+    on this host (`brdf.library.material_pool`)."""
+    out: dict[str, dict[str, str]] = {}
+    for t in tasks:
+        if t.condition not in out:
+            out[t.condition] = material_pool(DatasetConfig.model_validate_json(t.config_json).scene.materials)
+    return out
+
+
+def pools_difference(stored: dict, here: dict) -> str | None:
+    """None if every condition's pool matches, else the first difference (naming the materials)."""
+    for cond in sorted(set(stored) | set(here)):
+        why = pool_difference(stored.get(cond, {}), here.get(cond, {}))
+        if why:
+            return (f"condition {cond}: " if cond else "") + why
+    return None
+
+
+def _flat(d, prefix: str = "") -> dict:
+    if not isinstance(d, dict):
+        return {prefix: d}
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}.{k}" if prefix else str(k)
+        out.update(_flat(v, key) if isinstance(v, dict) and v else {key: v})
+    return out
+
+
+_ABSENT = "<absent>"
+
+
+def config_difference(stored: dict, given: dict, limit: int = 3) -> str:
+    """'key: stored X vs given Y' for the first `limit` differing keys ('' when equal)."""
+    a, b = _flat(stored), _flat(given)
+    keys = sorted(k for k in set(a) | set(b) if a.get(k, _ABSENT) != b.get(k, _ABSENT))
+    parts = [f"{k}: stored {json.dumps(a.get(k, _ABSENT))} vs given {json.dumps(b.get(k, _ABSENT))}"
+             for k in keys[:limit]]
+    return "; ".join(parts) + (f" (and {len(keys) - limit} more keys)" if len(keys) > limit else "")
+
+
+def _force_deletes(out: Path, n: int) -> str:
+    return f"--force deletes the {n} finished shard{'s' if n != 1 else ''} in {out} and starts over"
+
+
+def resume_config(out: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> DatasetConfig | None:
+    """The config to finish the dataset in `out` with: the one stored in its manifest, so that
+    `--resume` needs no retyped `--set`.  A `--set` (or --seed) that changes it is refused with one
+    line showing the difference.  None when `out` holds no started dataset (render as given)."""
+    out = Path(out).expanduser()
+    m = read_manifest(out) if (out / MANIFEST).is_file() else None
+    if not m or not m.get("shards") or not isinstance(m.get("config"), dict):
+        return None
+    stored = m["config"]
+    source = str(out / MANIFEST)
+    cfg = validate_config(apply_overrides(copy.deepcopy(stored), list(overrides), _qualify), source)
+    diff = config_difference(stored, json.loads(config_json(cfg)))
+    if diff:
+        n = len(m["shards"])
+        raise InputError(out, f"--resume finishes the stored config and --set changes it ({diff}); drop that "
+                              f"--set to resume, or {_force_deletes(out, n)} with the new config")
+    cfg._source = source
+    return cfg
 
 
 class _Terminated(BaseException):
@@ -54,13 +150,13 @@ def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, schedu
     check_out_dir(out, has_manifest=(out / MANIFEST).is_file())
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    try:
-        with OutLock(out):
+    with OutLock(out):
+        try:
             return _render_locked(cfg, out, tasks, variant, workers, scheduler, resume, force, threads,
                                   progress, recycle_after)
-    finally:
-        if created:
-            remove_if_empty(out)
+        finally:
+            if created:  # still locked: another render cannot have started writing into it yet
+                remove_if_empty(out)
 
 
 def worker_threads(threads: int | None, workers: int) -> int | None:
@@ -78,19 +174,39 @@ def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, f
                    recycle_after) -> dict:
     h = config_hash(cfg)
     existing = read_manifest(out)
-    if existing is not None and existing.get("shards"):  # an empty manifest protects nothing
-        if existing.get("config_hash") != h and not force:
-            raise InputError(out, "holds a dataset made with a different config "
-                                  f"({existing.get('config_hash', '?')[:12]} != {h[:12]}); use --force to replace it")
-        if existing.get("config_hash") == h and not (resume or force):
-            raise InputError(out, "already holds this dataset; use --resume to finish it or --force to redo it")
-    if existing is not None and (force or existing.get("config_hash") != h):
+    versions = _versions(variant)
+    pools = pools_of(tasks)
+    if existing is not None and existing.get("shards") and not force:  # an empty manifest protects nothing
+        n = len(existing["shards"])
+        if existing.get("config_hash") != h:
+            diff = config_difference(existing.get("config") or {}, json.loads(config_json(cfg)))
+            raise InputError(out, f"holds {n} finished shard{'s' if n != 1 else ''} of a different config "
+                                  f"({diff or existing.get('config_hash', '?')[:12] + ' != ' + h[:12]}); "
+                                  f"`--resume` without --set finishes that dataset, or {_force_deletes(out, n)} "
+                                  "with this config")
+        if not resume:
+            raise InputError(out, f"already holds this dataset ({n} of {len(tasks)} shards finished); --resume "
+                                  f"finishes it, or {_force_deletes(out, n)}")
+        why = renderer_difference(existing.get("versions") or {}, versions)
+        if why:
+            raise InputError(out, f"--resume refused: its {n} shards were {why}; one dataset must come from one "
+                                  f"renderer (--variant {existing['versions'].get('variant')} on the same "
+                                  f"Mitsuba), or {_force_deletes(out, n)}")
+        if existing.get("material_pool") is not None:
+            why = pools_difference(existing["material_pool"], pools)
+            if why:
+                raise InputError(out, f"--resume refused: the measured materials found here differ from those "
+                                      f"its {n} shards drew from ({why}); use the same MSPS_MERL_DIR / brdf/ "
+                                      f"files, or {_force_deletes(out, n)}")
+    if existing is not None and (force or existing.get("config_hash") != h or not existing.get("shards")):
         remove_dataset(out)  # only the toolkit's own files
         existing = None
     remove_temporaries(out)  # partial shards from a crash
     (out / SHARD_DIR).mkdir(exist_ok=True)
     manifest = existing if existing is not None else new_manifest(
-        config_json(cfg), h, cfg.dataset.seed, tasks, _versions(variant))
+        config_json(cfg), h, cfg.dataset.seed, tasks, versions)
+    if existing is None:
+        manifest["material_pool"] = pools
     done = {}
     for t in tasks:
         entry = manifest["shards"].get(t.name)
@@ -109,7 +225,8 @@ def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, f
         write_manifest(out, manifest)
         bar.update(info["n_patches"])
 
-    ws = WorkerSettings(out_dir=str(out), variant=variant, threads=worker_threads(threads, workers))
+    ws = WorkerSettings(out_dir=str(out), variant=variant, threads=worker_threads(threads, workers),
+                        material_pool=manifest.get("material_pool"))
     t0 = time.perf_counter()
     main_thread = threading.current_thread() is threading.main_thread()
     old_term = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
@@ -144,10 +261,38 @@ def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, f
     manifest["complete"] = len(manifest["shards"]) == len(tasks)
     manifest["last_run"] = {"wall_seconds": time.perf_counter() - t0, "workers": workers,
                             "scheduler": scheduler or "local", "shards_rendered": len(todo)}
+    if manifest["complete"] and manifest["n_patches"] == 0:
+        why = zero_patch_cause(cfg)
+        remove_dataset(out)  # a dataset of 0 patches trains nothing: leave none behind
+        remove_if_empty(out / SHARD_DIR)
+        raise InputError(out, f"the render yielded 0 patches: {why}; nothing kept")
     write_manifest(out, manifest)
     if manifest["complete"]:
         _write_card(out)
     return manifest
+
+
+def zero_patch_cause(cfg: DatasetConfig) -> str:
+    """Why frames give no patch: the patch grid against the frame size and the coverage threshold."""
+    p, c = cfg.dataset.patches, cfg.scene.camera
+    return (f"no {p.size}x{p.size} window (stride {p.stride}) of the {c.width}x{c.height} frames is at least "
+            f"{p.min_coverage:.0%} object (dataset.patches.min_coverage); use a smaller dataset.patches.size, "
+            "a lower min_coverage or larger scene.camera.width/height")
+
+
+def patch_grid_warning(cfg: DatasetConfig) -> str | None:
+    """A warning before rendering when the patch grid is so coarse for the frame that a render may yield
+    few or 0 patches (a window is kept only where the object covers min_coverage of it): patches wider
+    than half the shorter frame side.  `msps config show --probe N` counts them on real masks."""
+    from msps_render.patches import window_origins
+
+    p, c = cfg.dataset.patches, cfg.scene.camera
+    if 2 * p.size <= min(c.width, c.height):
+        return None
+    n = len(window_origins(c.height, c.width, p.size, p.stride))
+    return (f"{p.size}x{p.size} patches in {c.width}x{c.height} frames: only {n} window{'s' if n != 1 else ''} "
+            f"per frame, each kept only where the object covers {p.min_coverage:.0%} of it; the render may "
+            "yield few or 0 patches (it then fails); `--probe 2` counts them")
 
 
 def _write_card(out: Path) -> None:
