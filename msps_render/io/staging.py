@@ -6,6 +6,7 @@ import os
 import shutil
 from pathlib import Path
 
+from msps_render.atomic import fsync_dir
 from msps_render.errors import InputError
 
 
@@ -36,6 +37,7 @@ def staged_dir(out: Path):
         if out.exists():
             out.rmdir()  # empty (checked above)
         os.replace(stage, out)
+        fsync_dir(out.parent)  # the rename lives in the parent: make it durable
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
