@@ -5,9 +5,13 @@ import numpy as np
 
 
 def analytic_sphere_normals(width: int, height: int, extent: float, radius: float):
-    """Analytic normals/mask of an orthographic sphere at the pixel centres (for tests)."""
-    xs = ((np.arange(width) + 0.5) / width * 2 - 1) * extent * (width / height if width > height else 1)
-    ys = (1 - (np.arange(height) + 0.5) / height * 2) * extent
+    """Analytic normals/mask of an orthographic sphere at the pixel centres (for tests).
+
+    Mitsuba's orthographic camera maps the film width to x in +-extent and keeps pixels square,
+    so y spans +-extent * height / width (checked by test_non_square_frame_normals_match_...).
+    """
+    xs = ((np.arange(width) + 0.5) / width * 2 - 1) * extent
+    ys = (1 - (np.arange(height) + 0.5) / height * 2) * extent * height / width
     X, Y = np.meshgrid(xs, ys)
     r2 = (X ** 2 + Y ** 2) / radius ** 2
     mask = r2 < 1

@@ -95,6 +95,22 @@ def test_sphere_ground_truth_normals_and_mask(rgb_variant):
     assert np.abs(f.depth[inside] - (5.0 - z[inside])).max() < 1e-3
 
 
+
+@pytest.mark.parametrize("width,height", [(96, 64), (64, 96)])
+def test_non_square_frame_normals_match_the_analytic_helper(rgb_variant, width, height):
+    """Mitsuba's orthographic camera keeps x in +-extent and scales y by H/W; the analytic helper
+    must agree (same error bounds as the square frame above), so tests of non-square frames are sound."""
+    spec = sphere_scene([LightSpec(direction=(0, 0, 1))], spp=4).model_copy(
+        update={"camera": CameraSpec(width=width, height=height)})
+    f = render_frame(spec, rgb_variant)
+    n_true, disk = analytic_sphere_normals(width, height, spec.camera.extent, spec.shape.radius)
+    boundary = (disk ^ binary_erosion(disk)) | (binary_erosion(~disk) ^ ~disk)
+    assert np.array_equal(f.mask & ~boundary, disk & ~boundary)
+    inside = binary_erosion(disk, iterations=1)
+    assert inside.sum() > 0.5 * np.pi * (0.95 / 1.05 * min(width, height) / 2) ** 2
+    err = angular_error_deg(f.normal[inside], n_true[inside])
+    assert err.mean() < 0.2 and err.max() < 1.0, (err.mean(), err.max())
+
 def test_mesh_sphere_normals_close_to_analytic(rgb_variant):
     """The blobby path with zero displacement is an icosphere: interpolated normals ~ exact."""
     f = render_frame(sphere_scene([LightSpec(direction=(0, 0, 1))], spp=4, shape="blobby"), rgb_variant)
