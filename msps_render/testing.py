@@ -3,6 +3,14 @@ from __future__ import annotations
 
 import numpy as np
 
+# A crosstalk matrix (rows: camera channels, columns: lights; columns sum to 1, diagonally dominant)
+# far from symmetric: M - M.T has entries of 0.06-0.10, so code that swaps rows and columns -- light
+# k's RGB read from row k, or A = M.T @ L in the solve -- changes the result by several percent of
+# a light (the paper's 0.92/0.04 matrix is symmetric and hides such a transpose).
+ASYMMETRIC_CROSSTALK = np.array([[0.86, 0.02, 0.10],
+                                 [0.12, 0.90, 0.02],
+                                 [0.02, 0.08, 0.88]])
+
 
 def analytic_sphere_normals(width: int, height: int, extent: float, radius: float):
     """Analytic normals/mask of an orthographic sphere at the pixel centres (for tests).
