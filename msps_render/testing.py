@@ -12,6 +12,20 @@ ASYMMETRIC_CROSSTALK = np.array([[0.86, 0.02, 0.10],
                                  [0.02, 0.08, 0.88]])
 
 
+def frame_bootstrap(num, den=None, n: int = 2000, seed: int = 0) -> tuple[float, float]:
+    """95 % interval of sum(num) / sum(den) over frames drawn with replacement (den: 1 per frame).
+
+    Per-frame sums of pixel errors as `num` and of the baseline's as `den` give the pixel-pooled
+    ratio; per-frame MAEs and no `den` give the mean over frames. How far another draw of frames
+    of the same kind could move a claimed number: the tests' noise margins.
+    """
+    num = np.asarray(num, np.float64)
+    den = np.ones_like(num) if den is None else np.asarray(den, np.float64)
+    idx = np.random.default_rng(seed).integers(0, len(num), size=(n, len(num)))
+    lo, hi = np.percentile(num[idx].sum(1) / den[idx].sum(1), [2.5, 97.5])
+    return float(lo), float(hi)
+
+
 def analytic_sphere_normals(width: int, height: int, extent: float, radius: float):
     """Analytic normals/mask of an orthographic sphere at the pixel centres (for tests).
 

@@ -54,15 +54,6 @@ def _per_frame_errors(data, model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.array(net, np.float64), np.array(base, np.float64), np.array(count, np.float64)
 
 
-def frame_bootstrap(net: np.ndarray, base: np.ndarray, n: int = 2000, seed: int = 0) -> tuple[float, float]:
-    """95 % interval of the pixel-pooled ratio sum(net) / sum(base) over frames drawn with replacement."""
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, len(net), size=(n, len(net)))
-    r = net[idx].sum(1) / base[idx].sum(1)
-    lo, hi = np.percentile(r, [2.5, 97.5])
-    return float(lo), float(hi)
-
-
 @pytest.mark.slow  # renders 56 frames of 256² path-traced: 672-711 s per set measured (2 busy cores)
 @pytest.mark.parametrize("preset,claim,margin,target", [("unseen-test", UNSEEN_CLAIM, UNSEEN_MARGIN, UNSEEN_TARGET),
                                                         ("unseen-test-grey", GREY_CLAIM, GREY_MARGIN, GREY_TARGET)])
@@ -72,6 +63,7 @@ def test_shipped_model_meets_its_claims_on_unseen_objects(preset, claim, margin,
     from msps_render.models.predict import default_checkpoint
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.run import render_dataset
+    from msps_render.testing import frame_bootstrap
 
     monkeypatch.chdir(ROOT)  # the presets name the meshes as ../shared/data/meshes/..., from the checkout
     cfg = load_config(preset)
