@@ -3,11 +3,37 @@ from __future__ import annotations
 
 import numpy as np
 
+# A crosstalk matrix (rows: camera channels, columns: lights; columns sum to 1, diagonally dominant)
+# far from symmetric: M - M.T has entries of 0.06-0.10, so code that swaps rows and columns -- light
+# k's RGB read from row k, or A = M.T @ L in the solve -- changes the result by several percent of
+# a light (the paper's 0.92/0.04 matrix is symmetric and hides such a transpose).
+ASYMMETRIC_CROSSTALK = np.array([[0.86, 0.02, 0.10],
+                                 [0.12, 0.90, 0.02],
+                                 [0.02, 0.08, 0.88]])
+
+
+def frame_bootstrap(num, den=None, n: int = 2000, seed: int = 0) -> tuple[float, float]:
+    """95 % interval of sum(num) / sum(den) over frames drawn with replacement (den: 1 per frame).
+
+    Per-frame sums of pixel errors as `num` and of the baseline's as `den` give the pixel-pooled
+    ratio; per-frame MAEs and no `den` give the mean over frames. How far another draw of frames
+    of the same kind could move a claimed number: the tests' noise margins.
+    """
+    num = np.asarray(num, np.float64)
+    den = np.ones_like(num) if den is None else np.asarray(den, np.float64)
+    idx = np.random.default_rng(seed).integers(0, len(num), size=(n, len(num)))
+    lo, hi = np.percentile(num[idx].sum(1) / den[idx].sum(1), [2.5, 97.5])
+    return float(lo), float(hi)
+
 
 def analytic_sphere_normals(width: int, height: int, extent: float, radius: float):
-    """Analytic normals/mask of an orthographic sphere at the pixel centres (for tests)."""
-    xs = ((np.arange(width) + 0.5) / width * 2 - 1) * extent * (width / height if width > height else 1)
-    ys = (1 - (np.arange(height) + 0.5) / height * 2) * extent
+    """Analytic normals/mask of an orthographic sphere at the pixel centres (for tests).
+
+    Mitsuba's orthographic camera maps the film width to x in +-extent and keeps pixels square,
+    so y spans +-extent * height / width (checked by test_non_square_frame_normals_match_...).
+    """
+    xs = ((np.arange(width) + 0.5) / width * 2 - 1) * extent
+    ys = (1 - (np.arange(height) + 0.5) / height * 2) * extent * height / width
     X, Y = np.meshgrid(xs, ys)
     r2 = (X ** 2 + Y ** 2) / radius ** 2
     mask = r2 < 1

@@ -1,4 +1,8 @@
-"""The Lambertian baseline: exact on closed-form and on Mitsuba-rendered Lambertian objects."""
+"""The Lambertian baseline: exact on closed-form and on Mitsuba-rendered Lambertian objects.
+
+Both use an asymmetric crosstalk matrix (`testing.ASYMMETRIC_CROSSTALK`): with the paper's
+symmetric one a transposed matrix in the solve or in the lights' RGB would pass unnoticed.
+"""
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +10,8 @@ import pytest
 
 from msps_render.models.baseline import lambertian_ps, unshadowed
 from msps_render.models.metrics import angular_error_deg
-from msps_render.scene.lights import PAPER_CROSSTALK, three_lights
+from msps_render.scene.lights import three_lights
+from msps_render.testing import ASYMMETRIC_CROSSTALK
 
 
 def test_closed_form_lambertian_is_recovered_exactly():
@@ -16,7 +21,7 @@ def test_closed_form_lambertian_is_recovered_exactly():
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     lights = three_lights(30.0)
     L = np.array([l.direction for l in lights])
-    M = PAPER_CROSSTALK
+    M = ASYMMETRIC_CROSSTALK
     rho = 0.7
     c = rho * (np.clip(n @ L.T, 0, None) @ M.T)
     ok = (n @ L.T > 0).all(1)
@@ -33,9 +38,11 @@ def test_baseline_on_rendered_lambertian_blob(rgb_variant):
 
     coeffs = sample_blobby_coeffs(np.random.default_rng(4), 3, 0.2)
     spec = SceneSpec(shape=ShapeSpec(kind="blobby", sh_coeffs=coeffs, subdivisions=6),
-                     materials=(lambertian((0.6, 0.6, 0.6)),), lights=three_lights(30.0, irradiance=3.0),
+                     materials=(lambertian((0.6, 0.6, 0.6)),),
+                     lights=three_lights(30.0, crosstalk=ASYMMETRIC_CROSSTALK, irradiance=3.0),
                      camera=CameraSpec(width=96, height=96), integrator=IntegratorSpec(kind="direct", spp=64))
     f = render_frame(spec, rgb_variant)
+    np.testing.assert_allclose(f.crosstalk, ASYMMETRIC_CROSSTALK, atol=1e-12)  # column k = light k's RGB share
     n = lambertian_ps(f.image, f.light_dirs, f.crosstalk, f.mask)
     from scipy.ndimage import binary_erosion
 

@@ -308,8 +308,18 @@ def test_predict_and_eval_cli(tiny_dataset, tmp_path):
     assert rep["conditions"][""]["per_object"]
 
 
+# The blob test's claim (docs/reproducing.md, models/README.md) for models/dualcue-cpu.pt (v0.4): mean
+# MAE over its 3 frames, and the noise margin: the larger side of the 95 % frame-bootstrap interval
+# (`testing.frame_bootstrap`, printed by the test with -s). Measured on v0.4 (llvm_ad_rgb): 6.6505 deg,
+# frames 8.762 / 4.981 / 6.209, interval [4.981, 8.762], so +-2.12 (3 frames: wide, but what they
+# support). Lambertian 15.13 deg. Replacing the model: re-run with -s and update both.
+BLOB_CLAIM_DEG, BLOB_MARGIN_DEG = 6.65, 2.12
+
+
 def test_shipped_checkpoint_predicts_a_rendered_object(rgb_variant, tmp_path):
-    """`msps predict` works out of the box: the shipped cpu model on a fresh paper-like render."""
+    """`msps predict` works out of the box: the shipped cpu model on a fresh paper-like render,
+    at its claimed error (within the margin, both sides: a stale claim fails too) and < 0.7x Lambertian."""
+    from msps_render.testing import frame_bootstrap
     from msps_render.models.baseline import lambertian_ps
     from msps_render.models.metrics import angular_error_deg
     from msps_render.models.predict import default_checkpoint, predict_image
@@ -327,8 +337,11 @@ def test_shipped_checkpoint_predicts_a_rendered_object(rgb_variant, tmp_path):
         errs.append(angular_error_deg(n[f.mask], f.normal[f.mask]).mean())
         base.append(angular_error_deg(lambertian_ps(f.image, f.light_dirs, f.crosstalk)[f.mask],
                                       f.normal[f.mask]).mean())
-    print(f"shipped model MAE {np.mean(errs):.2f} deg vs Lambertian {np.mean(base):.2f} deg")
-    assert np.mean(errs) < 10.0 and np.mean(errs) < 0.7 * np.mean(base)
+    lo, hi = frame_bootstrap(errs)
+    print(f"shipped model MAE {np.mean(errs):.4f} deg vs Lambertian {np.mean(base):.4f} deg; per frame "
+          f"{np.round(errs, 3).tolist()}, 95% frame-bootstrap [{lo:.3f}, {hi:.3f}]")
+    assert abs(np.mean(errs) - BLOB_CLAIM_DEG) <= BLOB_MARGIN_DEG, (np.mean(errs), BLOB_CLAIM_DEG)
+    assert np.mean(errs) < 0.7 * np.mean(base)
 
 
 def test_warm_start_from_checkpoint(tiny_dataset, tmp_path):

@@ -16,7 +16,7 @@ import pytest
 from scipy.ndimage import binary_erosion
 
 from msps_render.render import render_frame
-from msps_render.testing import analytic_sphere_normals
+from msps_render.testing import ASYMMETRIC_CROSSTALK, analytic_sphere_normals
 from msps_render.scene.lights import direction_from_slant_tilt, three_lights
 from msps_render.scene.materials import lambertian
 from msps_render.scene.spec import CameraSpec, IntegratorSpec, LightSpec, SceneSpec, ShapeSpec
@@ -65,17 +65,28 @@ def test_path_equals_direct_on_convex_lambertian(rgb_variant):
 
 
 def test_three_coloured_lights_sum_without_selection_noise(rgb_variant):
-    """Three coloured lights at once equal the sum of the closed forms per light (<1%)."""
-    lights = three_lights(30.0, (0, 120, 240), irradiance=E)
+    """Three coloured lights at once equal the sum of the closed forms per light (<1%).
+
+    The closed form is built from the crosstalk matrix itself (channel i of light k = E M[i, k]),
+    not from the lights' RGB, and the matrix is asymmetric: a transpose anywhere from
+    `three_lights` to the film changes channels by several percent."""
+    M = ASYMMETRIC_CROSSTALK
+    tilts = (0, 120, 240)
+    lights = three_lights(30.0, tilts, M, irradiance=E)
     f = render_frame(sphere_scene(lights, spp=32), rgb_variant, per_light=True)
     n_true, disk = analytic_sphere_normals(128, 128, 1.05, 0.95)
-    expected = sum(RHO / np.pi * np.clip(n_true @ np.array(l.direction), 0, None)[..., None] * np.array(l.rgb)
-                   for l in lights)
+    expected = sum(RHO / np.pi * np.clip(n_true @ direction_from_slant_tilt(30.0, t), 0, None)[..., None]
+                   * E * M[:, k] for k, t in enumerate(tilts))
     inner = binary_erosion(disk, iterations=2) & (expected.min(-1) > 0.05)
     rel = np.abs(f.image[inner] - expected[inner]) / expected[inner]
     assert rel.mean() < 0.01
     assert f.per_light.shape == (3, 128, 128, 3)
     np.testing.assert_allclose(f.per_light.sum(0), f.image, rtol=1e-6, atol=1e-7)
+    # grey surface: light k's own image splits over the channels exactly as column k of M
+    for k in range(3):
+        lit = inner & (f.per_light[k].sum(-1) > 0.05)
+        share = f.per_light[k][lit].sum(0) / f.per_light[k][lit].sum()
+        np.testing.assert_allclose(share, M[:, k], atol=1e-5)
 
 
 def test_sphere_ground_truth_normals_and_mask(rgb_variant):
@@ -94,6 +105,22 @@ def test_sphere_ground_truth_normals_and_mask(rgb_variant):
     z = np.sqrt(np.clip(0.95 ** 2 - 0.95 ** 2 * (n_true[..., 0] ** 2 + n_true[..., 1] ** 2), 0, None))
     assert np.abs(f.depth[inside] - (5.0 - z[inside])).max() < 1e-3
 
+
+
+@pytest.mark.parametrize("width,height", [(96, 64), (64, 96)])
+def test_non_square_frame_normals_match_the_analytic_helper(rgb_variant, width, height):
+    """Mitsuba's orthographic camera keeps x in +-extent and scales y by H/W; the analytic helper
+    must agree (same error bounds as the square frame above), so tests of non-square frames are sound."""
+    spec = sphere_scene([LightSpec(direction=(0, 0, 1))], spp=4).model_copy(
+        update={"camera": CameraSpec(width=width, height=height)})
+    f = render_frame(spec, rgb_variant)
+    n_true, disk = analytic_sphere_normals(width, height, spec.camera.extent, spec.shape.radius)
+    boundary = (disk ^ binary_erosion(disk)) | (binary_erosion(~disk) ^ ~disk)
+    assert np.array_equal(f.mask & ~boundary, disk & ~boundary)
+    inside = binary_erosion(disk, iterations=1)
+    assert inside.sum() > 0.5 * np.pi * (0.95 / 1.05 * min(width, height) / 2) ** 2
+    err = angular_error_deg(f.normal[inside], n_true[inside])
+    assert err.mean() < 0.2 and err.max() < 1.0, (err.mean(), err.max())
 
 def test_mesh_sphere_normals_close_to_analytic(rgb_variant):
     """The blobby path with zero displacement is an icosphere: interpolated normals ~ exact."""

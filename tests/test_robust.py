@@ -143,6 +143,44 @@ def test_light_jitter_is_seeded():
     assert all(abs(l.slant_deg - 30) <= 3.0 for l in a)
 
 
+
+@pytest.mark.parametrize("slant,j", [(30.0, 3.0), (10.0, 20.0), (85.0, 10.0)])
+def test_light_jitter_bounds_the_angle_to_the_nominal_direction(slant, j):
+    """`jitter_deg` = j: the jittered light is within j of the nominal one (docs/appearance.md),
+    drawn uniformly in that cone; also across the pole (slant 10 < j) and at the horizon clamp.
+
+    1,000 draws x 3 lights: for a uniform cone P(angle < 0.98 j) = (1 - cos 0.98j) / (1 - cos j)
+    ~ 0.96 per draw, so a max below 0.98 j has probability ~1e-53; the mean of
+    (1 - cos a) / (1 - cos j) is 1/2 with standard error 0.29 / sqrt(3000) = 0.005 (bound 0.02).
+    The horizon case clamps slant to 89 deg, which removes part of the cone: only the max bound.
+    """
+    from msps_render.scene.lights import direction_from_slant_tilt, three_lights
+
+    tilts = (0.0, 120.0, 240.0)
+    rng = np.random.default_rng(0)
+    nominal = np.array([direction_from_slant_tilt(slant, t) for t in tilts])
+    ang, dev_az = [], []
+    for _ in range(1000):
+        lights = three_lights(slant, tilts, rng=rng, jitter_deg=j)
+        d = np.array([l.direction for l in lights])
+        ang.append(np.degrees(np.arccos(np.clip((d * nominal).sum(1), -1, 1))))
+        for l in lights:  # the stored slant/tilt describe the stored direction
+            np.testing.assert_allclose(l.direction, direction_from_slant_tilt(max(l.slant_deg, 1e-9), l.tilt_deg),
+                                       atol=1e-9)
+            assert l.slant_deg <= max(89.0, slant) + 1e-9
+    ang = np.concatenate(ang)
+    print(f"slant {slant}, j {j}: max angle {ang.max():.4f}, mean (1-cos a)/(1-cos j) "
+          f"{np.mean((1 - np.cos(np.radians(ang))) / (1 - np.cos(np.radians(j)))):.4f}")
+    assert ang.max() <= j + 1e-6
+    assert ang.max() >= 0.98 * j
+    if slant + j < 89.0:
+        u = (1 - np.cos(np.radians(ang))) / (1 - np.cos(np.radians(j)))
+        assert abs(u.mean() - 0.5) < 0.02
+    # deterministic from the rng
+    assert three_lights(slant, tilts, rng=np.random.default_rng(5), jitter_deg=j) == \
+        three_lights(slant, tilts, rng=np.random.default_rng(5), jitter_deg=j)
+
+
 # ------------------------------------------------------------------ sensor
 def _frame(image):
     from msps_render.frame import Frame

@@ -1,11 +1,16 @@
-"""The shipped checkpoint against issue 9's targets, measured from scratch in the test.
+"""The shipped checkpoint against its claimed numbers, measured from scratch in the test.
 
 The unseen-object test sets are rendered here from their presets (deterministic from the preset
 seeds: the same 2 x 28 frames as `msps render unseen-test[-grey]`, docs/reproducing.md) and
 predicted with the shipped model and the calibrated Lambertian baseline, pixel-pooled over whole
 frames as `benchmarks/unseen_report.py` does. Needs the test meshes in ../shared/data (skips
-without them). Targets: measured materials <= 0.7 x Lambertian; grey Lambertian control <=
-Lambertian (the baseline's best case: exact on every unshadowed pixel).
+without them).
+
+What is checked is the claim (README, models/README.md, docs/reproducing.md), not only the
+issue-9 target (<= 0.7x / <= 1x): the measured ratio shipped / Lambertian must lie within the
+margin of the claimed one, on both sides -- a worse model fails, and so does a better one whose
+claim was not updated. Replacing models/dualcue-cpu.pt: re-run with `-s`, which prints the ratio
+and its frame-bootstrap interval, and update the CLAIM / MARGIN pair below.
 """
 from __future__ import annotations
 
@@ -18,32 +23,56 @@ ROOT = Path(__file__).resolve().parents[1]
 
 pytest.importorskip("torch")
 
+# Claimed pooled-MAE ratios shipped / Lambertian of models/dualcue-cpu.pt (v0.4), each with its
+# noise margin: the larger side of the 95 % frame-bootstrap interval of the ratio on this test's
+# own 28 frames (2,000 resamples of frames with replacement, rng seed 0, printed by the test),
+# rounded up to 0.01. Measured on v0.4 (llvm_ad_rgb, this test with -s): unseen-test 0.5274
+# [0.4442, 0.6267] (16.25 vs 30.81 deg), grey 0.9239 [0.8263, 1.0397] (7.85 vs 8.50 deg). The
+# margin says how far another draw of 28 frames of the same kind could move the number, so a
+# ratio outside claim +- margin means the claim does not describe the model (v0.3's 0.65 on
+# unseen-test, within the old 0.7 bar, is outside 0.53 +- 0.10).
+UNSEEN_CLAIM, UNSEEN_MARGIN = 0.53, 0.10
+GREY_CLAIM, GREY_MARGIN = 0.92, 0.12
+# issue 9's targets, which the claims must meet
+UNSEEN_TARGET, GREY_TARGET = 0.7, 1.0
 
-def _pooled_mae(data, model) -> tuple[float, float]:
+
+def _per_frame_errors(data, model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per frame: summed angular error of the network, of the Lambertian baseline, pixel count."""
     from msps_render.data import iter_frames
     from msps_render.models.baseline import lambertian_ps
     from msps_render.models.metrics import angular_error_deg
     from msps_render.models.predict import predict_image
 
-    net, base = [], []
+    net, base, count = [], [], []
     for fr in iter_frames(data):
         m = fr.mask.astype(bool)
-        net.append(angular_error_deg(predict_image(model, fr.image, fr.mask)[m], fr.normal[m]))
-        base.append(angular_error_deg(lambertian_ps(fr.image, fr.light_dirs, fr.crosstalk, fr.mask)[m], fr.normal[m]))
-    return float(np.concatenate(net).mean()), float(np.concatenate(base).mean())
+        net.append(angular_error_deg(predict_image(model, fr.image, fr.mask)[m], fr.normal[m]).sum())
+        base.append(angular_error_deg(lambertian_ps(fr.image, fr.light_dirs, fr.crosstalk, fr.mask)[m],
+                                      fr.normal[m]).sum())
+        count.append(m.sum())
+    return np.array(net, np.float64), np.array(base, np.float64), np.array(count, np.float64)
 
 
-@pytest.mark.parametrize("preset,bar", [("unseen-test", 0.7), ("unseen-test-grey", 1.0)])
-def test_shipped_model_meets_the_unseen_object_targets(preset, bar, shared_data, rgb_variant, tmp_path,
-                                                       monkeypatch):
+@pytest.mark.slow  # renders 56 frames of 256² path-traced: 672-711 s per set measured (2 busy cores)
+@pytest.mark.parametrize("preset,claim,margin,target", [("unseen-test", UNSEEN_CLAIM, UNSEEN_MARGIN, UNSEEN_TARGET),
+                                                        ("unseen-test-grey", GREY_CLAIM, GREY_MARGIN, GREY_TARGET)])
+def test_shipped_model_meets_its_claims_on_unseen_objects(preset, claim, margin, target, shared_data, rgb_variant,
+                                                          tmp_path, monkeypatch):
     from msps_render.models.checkpoint import load_checkpoint
     from msps_render.models.predict import default_checkpoint
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.run import render_dataset
+    from msps_render.testing import frame_bootstrap
 
     monkeypatch.chdir(ROOT)  # the presets name the meshes as ../shared/data/meshes/..., from the checkout
     cfg = load_config(preset)
     render_dataset(cfg, tmp_path / preset, progress=False, variant=rgb_variant)
-    net, base = _pooled_mae(tmp_path / preset, load_checkpoint(default_checkpoint())[0])
-    print(f"{preset}: shipped {net:.2f} deg, Lambertian {base:.2f} deg, ratio {net / base:.3f}")
-    assert net <= bar * base
+    net, base, count = _per_frame_errors(tmp_path / preset, load_checkpoint(default_checkpoint())[0])
+    assert len(net) == cfg.dataset.n_shards * cfg.dataset.frames_per_shard
+    ratio = net.sum() / base.sum()
+    lo, hi = frame_bootstrap(net, base)
+    print(f"{preset}: shipped {net.sum() / count.sum():.2f} deg, Lambertian {base.sum() / count.sum():.2f} deg, "
+          f"ratio {ratio:.4f}, 95% frame-bootstrap [{lo:.4f}, {hi:.4f}] (margin {max(ratio - lo, hi - ratio):.4f})")
+    assert ratio <= target
+    assert abs(ratio - claim) <= margin, f"{preset}: measured {ratio:.3f}, claimed {claim} +- {margin}"

@@ -34,6 +34,37 @@ def random_crosstalk(rng: np.random.Generator, diagonal: tuple[float, float] = (
     return M
 
 
+def jitter_direction(d, jitter_deg: float, rng: np.random.Generator,
+                     max_slant_deg: float = 89.0) -> tuple[np.ndarray, float, float]:
+    """Direction drawn uniformly in the cone of half-angle `jitter_deg` around unit vector `d`.
+
+    Returns (direction, slant, tilt). Uniform on the spherical cap: cos(angle) ~ U(cos j, 1),
+    azimuth about `d` ~ U(0, 360) -- two draws from `rng`, as many as the old per-angle jitter,
+    so the draws after it keep their stream. So the angle to `d` is <= j (what `jitter_deg`
+    promises; perturbing slant and tilt by +-j each reached 1.1 j at slant 30). A slant past
+    `max_slant_deg` is set back to it along its meridian (the nearest point of that cap, which
+    contains `d`: the angle to `d` only shrinks) so no light grazes or goes below the horizon.
+    """
+    d = np.asarray(d, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    cos_a = 1.0 - float(rng.uniform()) * (1.0 - np.cos(np.radians(jitter_deg)))
+    phi = 2 * np.pi * float(rng.uniform())
+    # an orthonormal basis (u, v) of the plane normal to d (Frisvad / Duff et al. 2017)
+    sign = 1.0 if d[2] >= 0 else -1.0
+    a = -1.0 / (sign + d[2])
+    b = d[0] * d[1] * a
+    u = np.array([1.0 + sign * d[0] * d[0] * a, sign * b, -sign * d[0]])
+    v = np.array([b, sign + d[1] * d[1] * a, -d[1]])
+    sin_a = np.sqrt(max(0.0, 1.0 - cos_a * cos_a))
+    out = cos_a * d + sin_a * (np.cos(phi) * u + np.sin(phi) * v)
+    out /= np.linalg.norm(out)
+    s, t = slant_tilt_from_direction(out)
+    if s > max_slant_deg:
+        s = float(max_slant_deg)
+        out = direction_from_slant_tilt(s, t)
+    return out, s, t
+
+
 def three_lights(
     slant_deg: float = 30.0,
     tilts_deg=(0.0, 120.0, 240.0),
@@ -49,8 +80,8 @@ def three_lights(
 
     Column k of the crosstalk matrix is how light k registers in the camera's
     R, G, B channels on a white surface (paper: 0.92 own channel, 0.04 others).
-    Optional jitter (needs `rng`) perturbs each direction by up to `jitter_deg`
-    and each intensity by a factor in [1-intensity_jitter, 1+intensity_jitter].
+    Optional jitter (needs `rng`) turns each direction by up to `jitter_deg` (uniform in that
+    cone, `jitter_direction`) and scales each intensity by U(1-intensity_jitter, 1+intensity_jitter).
     """
     M = np.asarray(crosstalk, dtype=np.float64)
     if M.shape != (3, len(tilts_deg)):
@@ -61,13 +92,12 @@ def three_lights(
     lights = []
     for k, tilt in enumerate(tilts_deg):
         s, t = float(slant_deg), float(tilt)
+        d = direction_from_slant_tilt(s, t)
         gain = 1.0
         if jitter_deg > 0:
-            s = float(np.clip(s + rng.uniform(-jitter_deg, jitter_deg), 1.0, 89.0))
-            t = t + float(rng.uniform(-jitter_deg, jitter_deg))
+            d, s, t = jitter_direction(d, jitter_deg, rng, max_slant_deg=max(89.0, s))
         if intensity_jitter > 0:
             gain = float(rng.uniform(1 - intensity_jitter, 1 + intensity_jitter))
-        d = direction_from_slant_tilt(s, t)
         rgb = tuple(float(x) for x in irradiance * gain * M[:, k])
         lights.append(LightSpec(kind=kind, direction=tuple(d), rgb=rgb, distance=distance,
                                 slant_deg=s, tilt_deg=t % 360.0))

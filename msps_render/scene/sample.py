@@ -145,7 +145,8 @@ class LightsConfig(StrictModel):
     distance: float | None = Field(None, gt=1.0, description="point lights: distance from the origin "
                                                              "(scene units)")
     jitter_deg: float = Field(0.0, ge=0.0, le=20.0, description="random perturbation of each light "
-                                                                "direction per frame (deg)")
+                                                                "direction per frame: drawn uniformly in "
+                                                                "the cone of this half-angle (deg)")
     intensity_jitter: float = Field(0.0, ge=0.0, lt=1.0, description="relative random change of each "
                                                                      "light's intensity per frame")
     slant_range_deg: tuple[float, float] | None = Field(
