@@ -12,6 +12,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -697,3 +698,25 @@ def test_worker_killed_mid_run_is_one_line_and_keeps_finished_shards(tmp_path):
     assert f"pid {workers[0]}" in lines[0] and "SIGKILL" in lines[0] and "--resume" in lines[0]
     m = read_manifest(out)
     assert sorted(p.name for p in (out / "shards").iterdir()) == sorted(m["shards"]) and m["shards"]
+
+
+def test_ctrl_c_while_the_commands_import_is_one_line_and_130():
+    """A Ctrl-C that lands while `msps` is still importing its commands (over a second on a loaded machine)
+    ends with one line and 128 + SIGINT, not a KeyboardInterrupt traceback through half-imported modules.
+    An import hook sends the signal from inside the import of the last command module, deterministically."""
+    script = textwrap.dedent("""
+        import importlib.abc, os, signal, sys
+        class Hook(importlib.abc.MetaPathFinder):
+            def find_spec(self, name, path, target=None):
+                if name == "msps_render.cli.workflows":
+                    os.kill(os.getpid(), signal.SIGINT)
+                return None
+        sys.meta_path.insert(0, Hook())
+        sys.argv = ["msps", "--help"]
+        from msps_render.cli import app
+        app(prog_name="msps")
+    """)
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 128 + signal.SIGINT, r.stderr[-2000:]
+    assert lines == ["msps: interrupted while starting; nothing was written"], r.stderr[-2000:]

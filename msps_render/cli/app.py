@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import functools
+import signal
 
 import typer
 
@@ -56,6 +57,9 @@ def clean_errors(fn):
         except Interrupted as e:
             typer.echo(str(e), err=True)
             raise typer.Exit(e.exit_code)
+        except KeyboardInterrupt:  # Ctrl-C before a render's own handling began (config, validation)
+            typer.echo("msps: interrupted", err=True)
+            raise typer.Exit(128 + signal.SIGINT)
         except OSError as e:
             if e.filename is None and not isinstance(e, (PermissionError, FileNotFoundError, IsADirectoryError,
                                                          NotADirectoryError, FileExistsError)):
