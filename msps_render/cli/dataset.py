@@ -16,21 +16,31 @@ from msps_render.errors import InputError
 def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.toml) or TOML path"),
                out: Path = typer.Option(..., "--out", "-o", help="dataset directory"),
                seed: Optional[int] = typer.Option(None, help="root seed (overrides dataset.seed)"),
-               workers: int = typer.Option(1, help="local worker processes (or Dask LocalCluster size)"),
-               scheduler: Optional[str] = typer.Option(None, help="'dask-local' or tcp://host:8786"),
+               workers: int = typer.Option(1, help="local worker processes (or Dask LocalCluster size, "
+                                                   "or Slurm jobs)"),
+               scheduler: Optional[str] = typer.Option(None, help="'dask-local', 'slurm' or tcp://host:8786"),
                resume: bool = typer.Option(False, help="skip complete shards, redo partial ones"),
                force: bool = typer.Option(False, help="replace a dataset made with another config"),
                set_: List[str] = typer.Option([], "--set", help="override, e.g. lights.slant_deg=25"),
                variant: Optional[str] = typer.Option(None, help="Mitsuba variant"),
                threads: Optional[int] = typer.Option(None, help="render threads per worker (default: cores / workers)"),
                recycle_after: int = typer.Option(0, help="replace a local worker after N shards (0: never)"),
-               quiet: bool = typer.Option(False, help="no progress bar")):
+               quiet: bool = typer.Option(False, help="no progress bar"),
+               partition: Optional[str] = typer.Option(None, help="Slurm: partition (scheduler.slurm.partition)"),
+               cores: Optional[int] = typer.Option(None, help="Slurm: CPUs per worker job"),
+               memory: Optional[str] = typer.Option(None, help="Slurm: memory per worker job, e.g. 4GB"),
+               walltime: Optional[str] = typer.Option(None, help="Slurm: time limit per job, e.g. 04:00:00"),
+               sbatch: List[str] = typer.Option([], "--sbatch", help="Slurm: extra sbatch option (repeatable), "
+                                                                      "e.g. --sbatch=--qos=low")):
     """Render a dataset of HDF5 patch shards."""
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.run import render_dataset
+    from msps_render.pipeline.slurm import with_flags
 
     overrides = list(set_) + ([f"dataset.seed={seed}"] if seed is not None else [])
     cfg = load_config(config, overrides)
+    cfg.scheduler.slurm = with_flags(cfg.scheduler.slurm, scheduler, partition=partition, cores=cores,
+                                     memory=memory, walltime=walltime, sbatch=sbatch)
     m = render_dataset(cfg, out, workers=workers, scheduler=scheduler, resume=resume, force=force,
                        variant=variant, threads=threads, progress=not quiet,
                        recycle_after=recycle_after or None)
