@@ -91,10 +91,27 @@ def render_threads(s: SlurmSettings, threads: int | None) -> int:
     return int(threads or (int(env) if env else 0) or s.cores)
 
 
+def _import_jobqueue():
+    """`import dask_jobqueue`, keeping our SIGINT handler: its runner module replaces it on import with
+    `sys.exit()`, which would turn Ctrl-C into a silent exit 0 that skips our cleanup."""
+    import signal
+    import threading
+
+    main = threading.current_thread() is threading.main_thread()
+    old = signal.getsignal(signal.SIGINT) if main else None
+    try:
+        import dask_jobqueue
+        import dask_jobqueue.runner  # noqa: F401 - the module that sets the handler
+    finally:
+        if main and old is not None and signal.getsignal(signal.SIGINT) is not old:
+            signal.signal(signal.SIGINT, old)
+    return dask_jobqueue
+
+
 def preflight(s: SlurmSettings) -> None:
     """What can be known before any job: dask-jobqueue and sbatch installed."""
     try:
-        import dask_jobqueue  # noqa: F401
+        _import_jobqueue()
     except ImportError:
         raise InputError("--scheduler slurm", "needs dask-jobqueue (pip install 'msps[slurm]')") from None
     if shutil.which("sbatch") is None:
@@ -106,6 +123,7 @@ def make_cluster(s: SlurmSettings, submitted: list[str], failures: list[BaseExce
     """A `SLURMCluster` of one-worker jobs whose submitted job IDs and submission errors are recorded."""
     import logging
 
+    _import_jobqueue()
     from dask_jobqueue import SLURMCluster
     from dask_jobqueue.slurm import SLURMJob
 
