@@ -1,9 +1,36 @@
 """Running `msps` in a subprocess and checking the one-line error contract (shared by workflow tests)."""
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
+
+
+@contextlib.contextmanager
+def llvm_forced():
+    """Within: MSPS_VARIANT=llvm (every resolve, in this process and in subprocesses, gives the LLVM
+    variant) where llvm_ad_rgb works and MSPS_VARIANT is not already set; yields the variant forced
+    (None: nothing changed).  The `force_llvm` fixture of conftest.py."""
+    try:
+        import mitsuba as mi
+    except ImportError:
+        mi = None
+    from msps_render.render.variant import probe_variant
+
+    if (os.environ.get("MSPS_VARIANT") or mi is None or "llvm_ad_rgb" not in mi.variants()
+            or not probe_variant("llvm_ad_rgb")[0]):
+        yield None
+        return
+    old = os.environ.get("MSPS_VARIANT")
+    os.environ["MSPS_VARIANT"] = "llvm"
+    try:
+        yield "llvm_ad_rgb"
+    finally:
+        if old is None:
+            os.environ.pop("MSPS_VARIANT", None)
+        else:
+            os.environ["MSPS_VARIANT"] = old
 
 
 def cli(*args, env_extra: dict | None = None, timeout: int = 300) -> subprocess.CompletedProcess:

@@ -45,6 +45,20 @@ for _name, _variant in VARIANT_FIXTURES.items():
     globals()[_name] = _variant_fixture(_variant)
 
 
+@pytest.fixture(scope="module")
+def force_llvm():
+    """Render this module's tests with Mitsuba's LLVM variant where it works, in this process and in
+    every `msps` subprocess (`cli_helpers.llvm_forced`: MSPS_VARIANT=llvm); elsewhere change nothing
+    (tests that render skip by their own LLVM check, the others still run).
+
+    Why: the resolver prefers CUDA, so on a GPU machine tests written for LLVM (its speed, its
+    numbers) would otherwise skip.  Use `pytestmark = pytest.mark.usefixtures("force_llvm")`."""
+    from cli_helpers import llvm_forced
+
+    with llvm_forced() as v:
+        yield v
+
+
 @pytest.fixture
 def mitsuba_variant():
     """`mitsuba_variant(name)` sets variant `name` or skips (for tests parametrized over variants)."""

@@ -15,6 +15,8 @@ from cli_helpers import render_tiny
 
 pytest.importorskip("torch")
 
+pytestmark = pytest.mark.usefixtures("force_llvm")  # LLVM even where CUDA is preferred (conftest.py)
+
 TINY = """
 [dataset]
 name = "tiny-eval"

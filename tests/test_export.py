@@ -18,6 +18,8 @@ from cli_helpers import cli, one_line_error, render_tiny
 from msps_render.dataset import schema as K  # the shard's HDF5 keys
 from msps_render.errors import InputError
 
+pytestmark = pytest.mark.usefixtures("force_llvm")  # LLVM even where CUDA is preferred (conftest.py)
+
 TINY = """
 [dataset]
 name = "tiny-export"

@@ -27,6 +27,8 @@ from msps_render.dataset.manifest import read_manifest
 from msps_render.pipeline.run import render_dataset
 from msps_render.dataset import file_digest, read_digests
 
+pytestmark = pytest.mark.usefixtures("force_llvm")  # LLVM even where CUDA is preferred (conftest.py)
+
 TINY = """
 [dataset]
 name = "faults"

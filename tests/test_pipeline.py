@@ -21,6 +21,8 @@ from msps_render.pipeline.run import render_dataset
 from msps_render.dataset.verify import verify_dataset
 from msps_render.dataset import read_digests
 
+pytestmark = pytest.mark.usefixtures("force_llvm")  # LLVM even where CUDA is preferred (conftest.py)
+
 TINY = """
 [dataset]
 name = "tiny"

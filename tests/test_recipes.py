@@ -20,6 +20,8 @@ import pytest
 
 from msps_render.dataset import schema as K  # the shard's HDF5 keys
 
+pytestmark = pytest.mark.usefixtures("force_llvm")  # LLVM even where CUDA is preferred (conftest.py)
+
 DOC = Path(__file__).resolve().parents[1] / "docs" / "recipes.md"
 SMALL = ("--set scene.camera.width=48 --set scene.camera.height=48 --set scene.integrator.spp=4 "
          "--set scene.integrator.max_depth=3 --set dataset.patches.size=16 --set dataset.patches.stride=8 --quiet")

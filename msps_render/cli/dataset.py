@@ -16,8 +16,9 @@ from msps_render.errors import InputError
 def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.toml) or TOML path"),
                out: Path = typer.Option(..., "--out", "-o", help="dataset directory"),
                seed: Optional[int] = typer.Option(None, help="root seed (overrides dataset.seed)"),
-               workers: int = typer.Option(1, help="local worker processes (or Dask LocalCluster size)"),
-               scheduler: Optional[str] = typer.Option(None, help="'dask-local' or tcp://host:8786"),
+               workers: int = typer.Option(1, help="local worker processes (or Dask LocalCluster size, "
+                                                   "or Slurm jobs)"),
+               scheduler: Optional[str] = typer.Option(None, help="'dask-local', 'slurm' or tcp://host:8786"),
                resume: bool = typer.Option(False, help="finish the dataset in --out with the config stored in its "
                                                        "dataset.json (no --set needed; one that differs is refused)"),
                force: bool = typer.Option(False, help="delete the finished shards in --out (the toolkit's files "
@@ -26,10 +27,17 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
                variant: Optional[str] = typer.Option(None, help="Mitsuba variant"),
                threads: Optional[int] = typer.Option(None, help="render threads per worker (default: cores / workers)"),
                recycle_after: int = typer.Option(0, help="replace a local worker after N shards (0: never)"),
-               quiet: bool = typer.Option(False, help="no progress bar")):
+               quiet: bool = typer.Option(False, help="no progress bar"),
+               partition: Optional[str] = typer.Option(None, help="Slurm: partition (scheduler.slurm.partition)"),
+               cores: Optional[int] = typer.Option(None, help="Slurm: CPUs per worker job"),
+               memory: Optional[str] = typer.Option(None, help="Slurm: memory per worker job, e.g. 4GB"),
+               walltime: Optional[str] = typer.Option(None, help="Slurm: time limit per job, e.g. 04:00:00"),
+               sbatch: List[str] = typer.Option([], "--sbatch", help="Slurm: extra sbatch option (repeatable), "
+                                                                      "e.g. --sbatch=--qos=low")):
     """Render a dataset of HDF5 patch shards."""
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.run import config_difference, render_dataset, resume_config
+    from msps_render.pipeline.slurm import with_flags
 
     overrides = list(set_) + ([f"dataset.seed={seed}"] if seed is not None else [])
     cfg = load_config(config, overrides)
@@ -40,7 +48,10 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
             diff = config_difference(stored.model_dump(mode="json"), cfg.model_dump(mode="json"))
             if diff:
                 note = f"; resumed with the config stored in dataset.json, not {config} as given ({diff})"
+            stored.scheduler = cfg.scheduler  # where to run is not part of the dataset (not stored, not hashed)
             cfg = stored
+    cfg.scheduler.slurm = with_flags(cfg.scheduler.slurm, scheduler, partition=partition, cores=cores,
+                                     memory=memory, walltime=walltime, sbatch=sbatch)
     m = render_dataset(cfg, out, workers=workers, scheduler=scheduler, resume=resume, force=force,
                        variant=variant, threads=threads, progress=not quiet,
                        recycle_after=recycle_after or None)

@@ -18,6 +18,7 @@ from pydantic import Field, PrivateAttr, model_validator
 from msps_render import resources
 from msps_render.config_io import StrictModel, apply_overrides, read_toml, set_path, validate
 from msps_render.errors import InputError
+from msps_render.pipeline.slurm import SchedulerSection
 from msps_render.render.sensor import SensorConfig
 from msps_render.scene.sample import SceneConfig
 
@@ -69,6 +70,9 @@ class DatasetConfig(StrictModel):
     sensor: SensorConfig | None = Field(None, description="camera sensor model applied after rendering "
                                                           "(absent: the image is the rendered radiance)")
     sweep: SweepConfig | None = None
+    scheduler: SchedulerSection = Field(SchedulerSection(), exclude=True,
+                                        description="how to run the render (--scheduler slurm); not part of "
+                                                    "the dataset: left out of the config hash and the shards")
     _source: str | None = PrivateAttr(default=None)  # the TOML it was read from (for error lines)
 
     @model_validator(mode="before")

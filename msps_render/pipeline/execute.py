@@ -399,7 +399,7 @@ class WorkerPool:
 def run_dask(tasks: Iterable[Task], ws: WorkerSettings, scheduler: str, workers: int, on_done: OnDone) -> None:
     """`scheduler`: 'dask-local' (a LocalCluster of `workers` processes) or a 'tcp://host:port' address."""
     try:
-        from dask.distributed import Client, LocalCluster, as_completed
+        from dask.distributed import Client, LocalCluster
     except ImportError:
         raise InputError("--scheduler", "Dask is not installed (pip install 'msps[dask]')") from None
     tasks = list(tasks)
@@ -410,15 +410,38 @@ def run_dask(tasks: Iterable[Task], ws: WorkerSettings, scheduler: str, workers:
         client = Client(cluster)
     else:
         client = Client(scheduler)
+    try:
+        collect(client, tasks, ws, on_done)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def collect(client, tasks: list[Task], ws: WorkerSettings, on_done: OnDone,
+            watch: Callable[[], None] | None = None) -> None:
+    """Submit every task to a Dask `client`, record each shard as it finishes.
+
+    `watch` (optional) is called about every 0.2 s while shards are outstanding and may raise to
+    stop the run (pipeline/slurm.py: a worker job that ended).  On any error or interrupt, shards
+    that already finished are still recorded; the rest are left to the caller's cleanup."""
+    from dask.distributed import as_completed
+
     futs: dict = {}
     recorded: set = set()
     try:
         futs = {client.submit(render_shard, t, ws, key=f"msps-{t.name}-{t.config_json.__hash__()}", pure=False): t
                 for t in tasks}
-        for f in as_completed(list(futs)):
-            info = f.result()
-            recorded.add(f.key)
-            on_done(futs[f], info)
+        ac = as_completed(list(futs))
+        while not ac.is_empty():
+            if watch is not None and not ac.has_ready():
+                watch()
+                time.sleep(0.2)
+                continue
+            for f in ac.next_batch(block=watch is None):
+                info = f.result()
+                recorded.add(f.key)
+                on_done(futs[f], info)
     except BaseException:  # error or interrupt: keep shards that finished, quietly cancel the rest
         import logging
 
@@ -438,7 +461,3 @@ def run_dask(tasks: Iterable[Task], ws: WorkerSettings, scheduler: str, workers:
                     continue
                 on_done(t, info)  # a failed manifest write surfaces
         raise
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()

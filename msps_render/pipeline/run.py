@@ -232,7 +232,11 @@ def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, f
     old_term = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
     stopped_by = None
     try:
-        if scheduler:
+        if scheduler == "slurm":  # threads as given: the jobs' CPUs decide, not this machine's
+            from msps_render.pipeline.slurm import run_slurm
+
+            run_slurm(todo, ws, workers, on_done, cfg.scheduler.slurm, threads)
+        elif scheduler:
             run_dask(todo, ws, scheduler, workers, on_done)
         else:
             run_local(todo, ws, workers, on_done, recycle_after=recycle_after)

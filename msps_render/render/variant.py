@@ -10,6 +10,7 @@ resolved name explicitly.
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import warnings
@@ -51,7 +52,7 @@ def mitsuba_info() -> dict:
 
 @lru_cache(maxsize=None)
 def probe_variant(variant: str, timeout: float = 120.0) -> tuple[bool, str]:
-    """Run a tiny render in a child process; (works, reason)."""
+    """Run a tiny render in a child process; (works, reason: the child's exception text)."""
     try:
         r = subprocess.run([sys.executable, "-c", _PROBE.format(variant=variant)], capture_output=True,
                            text=True, timeout=timeout, env=os.environ.copy())
@@ -59,16 +60,35 @@ def probe_variant(variant: str, timeout: float = 120.0) -> tuple[bool, str]:
         return False, f"probe of {variant} timed out"
     if r.returncode == 0 and "OK" in r.stdout:
         return True, ""
-    tail = (r.stderr or r.stdout).strip().splitlines()[-1:] or [f"exit code {r.returncode}"]
-    return False, tail[0][:200]
+    return False, failure_line(r.stderr or r.stdout, r.returncode)
+
+
+_EXC_LINE = re.compile(r"^[A-Za-z_][\w.]*(Error|Exception|Exit|Interrupt)\b.*")
+
+
+def failure_line(text: str, returncode: int) -> str:
+    """The exception line of a child's traceback ('ImportError: ...'), even when something is printed
+    after it (drjit's exit-time leak reports); else its last line; else its exit code."""
+    lines = [ln.strip() for ln in (text or "").splitlines() if ln.strip()]
+    exc = [ln for ln in lines if _EXC_LINE.match(ln)]
+    line = (exc or lines or [f"exit code {returncode}"])[-1]
+    return line[:300]
+
+
+BACKENDS = ("cuda", "llvm", "scalar")  # MSPS_VARIANT=llvm: the LLVM variant of whatever mode is rendered
 
 
 def resolve_variant(mode: str = "rgb", requested: str | None = None) -> str:
-    """The variant to render with. `MSPS_VARIANT` or `requested` force one."""
+    """The variant to render with. `MSPS_VARIANT` or `requested` force one: a variant name, or a
+    backend ('cuda', 'llvm', 'scalar') meaning that backend's variant for `mode` (tests force LLVM
+    this way whatever the machine prefers).  When a faster variant fails its probe, the warning
+    says why (the probe's exception text)."""
     import mitsuba as mi
 
     requested = requested or os.environ.get("MSPS_VARIANT") or None
     if requested:
+        if requested in BACKENDS:
+            requested = next(v for v in PREFERRED[mode] if v.startswith(requested))
         if requested not in mi.variants():
             raise ValueError(f"Mitsuba variant '{requested}' is not available (have: {', '.join(mi.variants())})")
         return requested
@@ -82,6 +102,10 @@ def resolve_variant(mode: str = "rgb", requested: str | None = None) -> str:
         else:
             ok, why = probe_variant(v)
             if ok:
+                gpu = [r for r in reasons if r.startswith("cuda")]
+                if gpu and cuda_device_present():  # a GPU is there but its variant fails: say why
+                    warnings.warn(f"Mitsuba's CUDA variant is unusable ({gpu[0]}); using {v} instead",
+                                  VariantFallbackWarning, stacklevel=2)
                 return v
             reasons.append(f"{v}: {why}")
     warnings.warn(f"Mitsuba variant {fast[-1]} is unusable ({'; '.join(reasons)}); falling back to {slow}, "
