@@ -439,7 +439,21 @@ def test_dask_error_cancels_outstanding_futures(monkeypatch):
 
     made = []
     monkeypatch.setattr(dd, "Client", lambda *a, **kw: made.append(Client()) or made[-1])
-    monkeypatch.setattr(dd, "as_completed", lambda futs: iter(futs[:1]))
+    class AsCompleted:  # the slice of dask's as_completed that execute.collect uses: the first future fails
+        def __init__(self, futs):
+            self.futs = list(futs[:1])
+
+        def is_empty(self):
+            return not self.futs
+
+        def has_ready(self):
+            return bool(self.futs)
+
+        def next_batch(self, block=True):
+            out, self.futs = self.futs, []
+            return out
+
+    monkeypatch.setattr(dd, "as_completed", AsCompleted)
     tasks = [Task(i, f"shard-{i:05d}.h5", "", i, 0, "{}") for i in range(3)]
     with pytest.raises(RuntimeError, match="boom"):
         run_dask(tasks, WorkerSettings("/nonexistent", "llvm_ad_rgb"), "tcp://nowhere:1", 1, lambda t, i: None)
