@@ -146,7 +146,7 @@ def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, schedu
     validate_inputs(cfg, getattr(cfg, "_source", None))
     tasks = plan(cfg)
     mode = "spectral" if getattr(cfg.scene, "mode", "rgb") == "spectral" else "rgb"
-    variant = variant or resolve_variant(mode)
+    variant = resolve_variant(mode, variant)  # a wrong --variant: one line now, not in a worker
     check_out_dir(out, has_manifest=(out / MANIFEST).is_file())
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
