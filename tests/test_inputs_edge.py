@@ -135,9 +135,10 @@ def _pngs(tmp: Path) -> dict[str, Path]:
 
     a16 = np.full((8, 8, 3), 32768, np.uint16)
     own = encode_png(a16)
-    i = own.index(b"gAMA") - 4
+    i = own.find(b"gAMA") - 4
     (tmp / "own16.png").write_bytes(own)
-    (tmp / "raw16.png").write_bytes(own[:i] + own[i + 16:])  # chunk: 4 length + 4 type + 4 data + 4 CRC
+    raw = own[:i] + own[i + 16:] if i >= 0 else own  # chunk: 4 length + 4 type + 4 data + 4 CRC
+    (tmp / "raw16.png").write_bytes(raw)
     Image.fromarray(np.full((8, 8, 3), 128, np.uint8)).save(tmp / "pic8.png")
     return {k: tmp / f"{k}.png" for k in ("own16", "raw16", "pic8")}
 
@@ -231,7 +232,7 @@ def test_messages_name_the_real_culprit(tmp_path):
     _pngs(tmp_path)
     shutil.copy(tmp_path / "own16.png", tmp_path / "photo.exr")
     line = one_line_error(cli("predict", tmp_path / "photo.exr", "--out", tmp_path / "p"))
-    assert line == f"error: {tmp_path / 'photo.exr'}: not an OpenEXR file (looks like PNG)", line
+    assert line == f"error: {tmp_path / 'photo.exr'}: cannot read EXR: not an OpenEXR file (looks like PNG)", line
     missing = tmp_path / "no-such-dataset"
     for args in (("verify", missing), ("export", missing, "--format", "png16", "--out", tmp_path / "e")):
         assert one_line_error(cli(*args)) == f"error: {missing}: does not exist", args

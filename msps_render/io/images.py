@@ -35,20 +35,22 @@ def sniff(p: Path) -> str | None:
     return next((name for name, sigs in MAGIC.items() if any(head.startswith(s) for s in sigs)), None)
 
 
-def check_magic(p: Path, expected: str) -> None:
-    """`InputError` unless file `p` starts with the signature of format `expected` (a `MAGIC` key)."""
+def check_magic(p: Path, expected: str, what: str) -> None:
+    """`InputError` '`what`: not a/an `expected` file (looks like X)' unless file `p` starts with the
+    signature of format `expected` (a `MAGIC` key)."""
     if p.stat().st_size == 0:
-        raise InputError(p, f"empty file (expected {expected})")
+        raise InputError(p, f"{what}: empty file")
     got = sniff(p)
     if got != expected:
         article = "an" if expected[0] in "AEIOU" else "a"
-        raise InputError(p, f"not {article} {expected} file ({f'looks like {got}' if got else 'unknown content'})")
+        raise InputError(p, f"{what}: not {article} {expected} file "
+                            f"({f'looks like {got}' if got else 'unknown content'})")
 
 
 def _read_exr(p: Path) -> np.ndarray:
     import OpenEXR
 
-    check_magic(p, "OpenEXR")
+    check_magic(p, "OpenEXR", "cannot read EXR")
     try:
         with OpenEXR.File(str(p)) as f:
             ch = f.channels()
@@ -72,7 +74,7 @@ def _read_exr(p: Path) -> np.ndarray:
 def _read_hdr(p: Path) -> np.ndarray:
     import mitsuba as mi  # Bitmap works without a variant; reads Radiance RGBE
 
-    check_magic(p, "Radiance HDR")
+    check_magic(p, "Radiance HDR", "cannot read HDR")
     try:
         img = np.array(mi.Bitmap(str(p)), dtype=np.float32)
     except Exception as e:
@@ -83,7 +85,7 @@ def _read_hdr(p: Path) -> np.ndarray:
 
 
 def _read_npy(p: Path) -> np.ndarray:
-    check_magic(p, "NPY")
+    check_magic(p, "NPY", "cannot read NPY")
     try:
         return np.load(p, allow_pickle=False).astype(np.float32)
     except Exception as e:

@@ -68,7 +68,7 @@ def read_png(path: str | Path) -> np.ndarray:
         raise InputError(p, "image file not found")
     from msps_render.io.images import check_magic
 
-    check_magic(p, "PNG")
+    check_magic(p, "PNG", "cannot read PNG")
     try:
         import mitsuba as mi
 
