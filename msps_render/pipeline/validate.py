@@ -12,6 +12,7 @@ a file it could have checked first.
 """
 from __future__ import annotations
 
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -83,7 +84,13 @@ def _check_envmap(sc) -> None:
     if float(img.max()) <= 0:
         raise InputError(env.source, "environment map is black (all zero): it cannot light the scene at "
                                      f"the requested ratio {env.ratio}")
-    check_front_irradiance(img, env.source, env.random_rotation)
+    _check_front(env.source, bool(env.random_rotation))
+
+
+@lru_cache(maxsize=8)
+def _check_front(source: str, random_rotation: bool) -> None:
+    """Once per map and rotation setting (a sweep of env ratios shares one map)."""
+    check_front_irradiance(load_envmap(source), source, random_rotation)
 
 
 def _check_textures(sc, seen: set) -> None:
