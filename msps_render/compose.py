@@ -112,19 +112,18 @@ def choose_lights(light_dirs: np.ndarray, slant_deg: float, tilts_deg) -> tuple[
     return idx, ang[idx, np.arange(len(T))]
 
 
-def read_photo(path: Path, srgb: bool = False) -> np.ndarray:
-    """A capture image as linear float RGB (H, W, 3).  PNG/TIFF integers are taken as linear
-    (raw captures such as DiLiGenT's 16-bit PNGs) unless `srgb`; alpha is dropped."""
-    from msps_render.io.png16 import read_png
+def read_photo(path: Path, linear: bool | None = None, warn=None) -> np.ndarray:
+    """A capture image as linear float RGB (H, W, 3); alpha is dropped.  PNG follows the one rule of
+    `msps predict` and `msps compose` (`io.png16.PNG_RULE`: its tag, else 16-bit linear, 8-bit sRGB,
+    `warn(message)` hearing the guess; `linear` True/False forces it).  JPG/TIFF are decoded as
+    sRGB, EXR/HDR/NPY are linear."""
+    from msps_render.io.png16 import read_png_linear
     from msps_render.io.images import read_image
 
     if not path.is_file():
         raise InputError(path, "image file not found")
     if path.suffix.lower() == ".png":
-        a = read_png(path)
-        img = a.astype(np.float64) / np.iinfo(a.dtype).max
-        if srgb:
-            img = np.where(img <= 0.04045, img / 12.92, ((img + 0.055) / 1.055) ** 2.4)
+        img = read_png_linear(path, linear, warn)
     else:
         img = read_image(path).astype(np.float64)  # EXR/HDR/NPY linear; JPG/TIFF decoded as sRGB
     if img.ndim == 2:
@@ -204,15 +203,15 @@ def read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
 
 
 def compose_arrays(cap: Capture, slant_deg: float = 30.0, tilts_deg=(0.0, 120.0, 240.0),
-                   crosstalk: np.ndarray | None = None, srgb: bool = False) -> Composed:
+                   crosstalk: np.ndarray | None = None, linear: bool | None = None, warn=None) -> Composed:
     """The composition itself, in memory (no file written): the three lights nearest the layout,
     each photo divided by its light's intensity, mixed by `composed[c] = sum_k M[c,k] photo_k[c]`;
-    0 outside the mask (mask.png, else the non-zero pixels)."""
+    0 outside the mask (mask.png, else the non-zero pixels).  `linear`, `warn`: see `read_photo`."""
     from msps_render.calibration import PAPER_CROSSTALK
 
     M = PAPER_CROSSTALK.copy() if crosstalk is None else np.asarray(crosstalk, np.float64)
     idx, dev = select_lights(cap, slant_deg, tilts_deg)
-    photos = [read_photo(cap.images[i], srgb) for i in idx]
+    photos = [read_photo(cap.images[i], linear, warn) for i in idx]
     H, W = photos[0].shape[:2]
     for i, p in zip(idx, photos):
         if p.shape[:2] != (H, W):
@@ -229,8 +228,9 @@ def compose_arrays(cap: Capture, slant_deg: float = 30.0, tilts_deg=(0.0, 120.0,
 
 def compose_capture(capture_dir: str | Path, out: str | Path, slant_deg: float = 30.0,
                     tilts_deg=(0.0, 120.0, 240.0), crosstalk: np.ndarray | None = None,
-                    srgb: bool = False) -> dict:
-    """Write OUT/{image.exr, mask.png, calibration.json, preview.png}; returns a summary with warnings."""
+                    linear: bool | None = None) -> dict:
+    """Write OUT/{image.exr, mask.png, calibration.json, preview.png}; returns a summary with warnings
+    (among them how PNG photos were decoded, where `read_photo` had to guess)."""
     from msps_render.calibration import PAPER_CROSSTALK, write_calibration
     from msps_render.io.images import write_exr
     from msps_render.io.png16 import write_png
@@ -243,8 +243,12 @@ def compose_capture(capture_dir: str | Path, out: str | Path, slant_deg: float =
     cap = read_capture(capture_dir)
     select_lights(cap, slant_deg, tilts)  # a capture without 3 front lights fails before --out is checked
     check_new_out(out)
-    comp, m, L, dev, idx = compose_arrays(cap, slant_deg, tilts, M, srgb)
-    warnings = [f"light {cap.images[i].name} is {d:.1f} deg from the target (slant {slant_deg:g}, tilt {t:g})"
+    guesses: list[str] = []
+    comp, m, L, dev, idx = compose_arrays(cap, slant_deg, tilts, M, linear, guesses.append)
+    if guesses:  # one line for the three photos
+        guesses = [guesses[0] if len(guesses) == 1 else
+                   f"{guesses[0]} (and {len(guesses) - 1} more photo(s) of {cap.root} alike)"]
+    warnings = guesses + [f"light {cap.images[i].name} is {d:.1f} deg from the target (slant {slant_deg:g}, tilt {t:g})"
                 for i, d, t in zip(idx, dev, tilts) if d > WARN_DEVIATION_DEG]
     info = {"capture": str(cap.root.resolve()), "images": [cap.images[i].name for i in idx],
             "light_indices": [int(i) + 1 for i in idx], "target_slant_deg": float(slant_deg),
@@ -254,5 +258,5 @@ def compose_capture(capture_dir: str | Path, out: str | Path, slant_deg: float =
         write_exr(stage / "image.exr", comp.astype(np.float32))
         write_png(stage / "mask.png", (m * 255).astype(np.uint8))
         write_calibration(stage / "calibration.json", L, M, source="msps compose", info=info)
-        write_png(stage / "preview.png", tonemap(comp, m))
+        write_png(stage / "preview.png", tonemap(comp, m), srgb=True)
     return {**info, "out": str(out), "warnings": warnings}

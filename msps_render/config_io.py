@@ -65,6 +65,20 @@ def apply_overrides(data: dict, overrides, qualify: Callable[[str], str] = lambd
     return data
 
 
+def check_override_keys(overrides, model: type[BaseModel], qualify: Callable[[str], str] = lambda k: k,
+                        normalise: Callable[[dict], dict] = lambda d: d) -> None:
+    """`InputError` naming the `--set` option whose key the model does not know (with a did-you-mean),
+    so the preset file is not blamed for a typo on the command line."""
+    for ov in overrides:
+        if "=" not in ov:
+            raise InputError(f"--set {ov}", "expected key=value")
+        probe: dict = {}
+        set_path(probe, qualify(ov.split("=", 1)[0].strip()), None)
+        bad = unknown_keys(normalise(probe), model)
+        if bad:
+            raise InputError(f"--set {ov}", bad[0])
+
+
 def unknown_keys(data: Any, model: type[BaseModel], prefix: str = "") -> list[str]:
     """Every key the model does not know, with a 'did you mean' suggestion."""
     out: list[str] = []

@@ -53,6 +53,17 @@ def closest(name: str, choices) -> str:
     return f" (did you mean '{match[0]}'?)" if match else ""
 
 
+def not_a_dataset(root: str | Path) -> InputError:
+    """The error for a path that should be a dataset directory but holds no dataset.json: says
+    first whether the path exists at all (a typo), then whether it is a directory."""
+    p = Path(root)
+    if not p.exists():
+        return InputError(p, "does not exist")
+    if not p.is_dir():
+        return InputError(p, "is a file, not a dataset directory")
+    return InputError(p, "no dataset.json here (not a dataset directory)")
+
+
 def format_validation_error(err: Exception) -> str:
     """Compress a pydantic ValidationError to one line naming each bad key."""
     errors = getattr(err, "errors", None)

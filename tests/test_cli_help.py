@@ -40,8 +40,8 @@ def test_predict_drops_alpha(tmp_path):
     rgba[2:6, 2:6] = (200, 100, 50, 255)
     Image.fromarray(rgba, "RGBA").save(tmp_path / "a.png")
     write_png(tmp_path / "b.png", np.ascontiguousarray(rgba[..., :3]))
-    img, mask = read_inputs(tmp_path / "a.png", None)
-    ref, _ = read_inputs(tmp_path / "b.png", None)
+    img, mask = read_inputs(tmp_path / "a.png", None, linear=False)  # Pillow's is untagged, ours tagged
+    ref, _ = read_inputs(tmp_path / "b.png", None, linear=False)  # linear: decode both the same way
     assert img.shape == (8, 8, 3) and np.array_equal(img, ref) and mask.sum() == 16
 
 

@@ -223,7 +223,7 @@ def test_diligent_numbers_reproduce(tmp_path):
         obj = load_real_object(f)
         cap = read_capture(f)
         idx, _ = select_lights(cap)
-        raw = sum(read_photo(cap.images[i]) / cap.intensities[i] * obj.crosstalk[:, k] for k, i in enumerate(idx))
+        raw = sum(read_photo(cap.images[i], linear=True) / cap.intensities[i] * obj.crosstalk[:, k] for k, i in enumerate(idx))
         assert np.allclose(raw[obj.mask], obj.image[obj.mask], atol=1e-6) and not obj.image[~obj.mask].any()
         n = predict_image(model, raw.astype(np.float32), obj.mask)
         mae = float(angular_error_deg(n[obj.valid], obj.normal_gt[obj.valid]).mean())

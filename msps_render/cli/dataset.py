@@ -8,7 +8,7 @@ from typing import List, Optional
 import typer
 
 from msps_render.cli.app import app, clean_errors
-from msps_render.errors import InputError
+from msps_render.errors import InputError, not_a_dataset
 
 
 @app.command("render")
@@ -136,7 +136,7 @@ def preview_cmd(root: Path = typer.Argument(..., help="dataset directory"),
     from msps_render.pipeline.preview import preview_dataset
 
     if not (root / "dataset.json").is_file():
-        raise InputError(root, "no dataset.json here")
+        raise not_a_dataset(root)
     check_writable(out.parent)
     typer.echo(f"wrote {preview_dataset(root, out, n, tile=tile, cols=cols, labels=labels)}")
 
@@ -153,7 +153,7 @@ def card_cmd(root: Path = typer.Argument(..., help="dataset directory"),
     from msps_render.pipeline.outdir import check_writable
 
     if not (root / "dataset.json").is_file():
-        raise InputError(root, "no dataset.json here")
+        raise not_a_dataset(root)
     if out is not None and out.suffix.lower() != ".png":
         raise InputError(out, "--out must be a .png path (the JSON is written beside it)")
     check_writable(out.parent if out is not None else root)

@@ -8,6 +8,9 @@ from typing import List, Optional
 import typer
 
 from msps_render.cli.app import app, clean_errors
+from msps_render.io.png16 import PNG_RULE
+
+PNG_HELP = f"force PNG values to be read as linear radiance / as sRGB-encoded. Default: {PNG_RULE}"
 
 
 @app.command("train")
@@ -65,8 +68,8 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
 
 @app.command("predict")
 @clean_errors
-def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (linear RGB) or "
-                                               "PNG/JPG (sRGB-encoded, decoded to linear; alpha dropped)"),
+def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (linear RGB), JPG (sRGB-encoded, "
+                                               "decoded to linear) or PNG (see --linear/--srgb); alpha dropped"),
                 out: Path = typer.Option(..., help="output path stem, dots kept: OUT.npy, OUT.png, OUT-panel.png "
                                          "(and OUT-metrics.json with --normal-gt)"),
                 checkpoint: Optional[Path] = typer.Option(None, help="checkpoint (default: shipped cpu model)"),
@@ -76,8 +79,7 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
                                                 "tilts_deg, crosstalk; docs/recipes.md), e.g. from `msps compose`"),
                 light_dirs: Optional[str] = typer.Option(None, help="JSON 3x3, rows toward the lights"),
                 crosstalk: Optional[str] = typer.Option(None, help="JSON 3x3 crosstalk matrix"),
-                linear: bool = typer.Option(False, "--linear", help="PNG values are linear radiance (e.g. "
-                                            "`msps export --format png16`), not sRGB"),
+                linear: Optional[bool] = typer.Option(None, "--linear/--srgb", help=PNG_HELP),
                 normal_gt: Optional[Path] = typer.Option(None, "--normal-gt", help="ground-truth normals: .npy "
                                                          "(H, W, 3) or EXR/PNG normal map ((n+1)/2-encoded; "
                                                          "signed EXR too); zero normals are left out. Adds "

@@ -19,10 +19,11 @@ def render_scene(scene: Path = typer.Argument(..., help="SceneSpec JSON (see `ms
                  per_light: bool = typer.Option(False, "--per-light", help="also write one image per light")):
     """Render one scene: image/normal/depth EXR + PNG previews + scene.json."""
     from msps_render.pipeline.outdir import check_writable
-    from msps_render.render import render_frame
+    from msps_render.render import render_frame, resolve_variant
     from msps_render.scene.spec import SceneSpec
 
     spec = SceneSpec.load(scene)
+    variant = resolve_variant(spec.mode, variant)  # a wrong --variant: one line before anything is written
     check_writable(out)
     import time
 

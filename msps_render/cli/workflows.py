@@ -8,6 +8,7 @@ from typing import Optional
 import typer
 
 from msps_render.cli.app import app, clean_errors
+from msps_render.cli.models import PNG_HELP
 
 
 def _run(fn):
@@ -56,8 +57,7 @@ def compose_cmd(capture: Path = typer.Argument(..., help="DiLiGenT-style folder:
                 tilts: str = typer.Option("0,120,240", help="target tilts (deg, comma-separated)"),
                 crosstalk: Optional[str] = typer.Option(None, help="'paper' (default, 0.92/0.04), 'identity' "
                                                         "or a JSON 3x3 (rows: channels, columns: lights)"),
-                srgb: bool = typer.Option(False, "--srgb", help="PNG photos are sRGB-encoded (default: linear, "
-                                          "as raw captures)")):
+                linear: Optional[bool] = typer.Option(None, "--linear/--srgb", help=PNG_HELP)):
     """Combine three per-light photos into one pseudo-multispectral image + calibration.json for `msps predict`."""
 
     def go():
@@ -68,7 +68,7 @@ def compose_cmd(capture: Path = typer.Argument(..., help="DiLiGenT-style folder:
             t = [float(x) for x in tilts.split(",") if x.strip()]
         except ValueError:
             raise InputError("--tilts", f"not a comma-separated list of numbers: {tilts!r}") from None
-        r = compose_capture(capture, out, slant, t, parse_crosstalk(crosstalk), srgb)
+        r = compose_capture(capture, out, slant, t, parse_crosstalk(crosstalk), linear)
         for w in r["warnings"]:
             typer.echo(f"warning: {w}", err=True)
         dev = ", ".join(f"{n} ({d:.1f} deg off)" for n, d in zip(r["images"], r["deviation_deg"]))

@@ -20,7 +20,7 @@ from msps_render.atomic import atomic_write
 from msps_render.dataset import schema as K
 from msps_render.dataset.manifest import Manifest, read_manifest
 from msps_render.dataset.reader import has_per_light, has_whole_frames, open_shard, shard_errors
-from msps_render.errors import InputError
+from msps_render.errors import InputError, not_a_dataset
 
 CARD_PNG = "card.png"
 CARD_JSON = "card.json"
@@ -158,7 +158,7 @@ def card_data(root: str | Path, max_patches: int = MAX_PATCHES) -> dict:
     root = Path(root)
     raw = read_manifest(root)
     if raw is None:
-        raise InputError(root, "no dataset.json here (not a dataset directory)")
+        raise not_a_dataset(root)
     man = Manifest.from_dict(root, raw)
     shards = man.shards_of()
     if not shards:

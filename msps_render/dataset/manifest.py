@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from msps_render.atomic import atomic_write
-from msps_render.errors import InputError
+from msps_render.errors import InputError, not_a_dataset
 
 MANIFEST = "dataset.json"
 SHARD_DIR = "shards"
@@ -172,7 +172,7 @@ def load_manifest(root: str | Path, need_complete: bool = True) -> Manifest:
     root = Path(root)
     m = read_manifest(root)
     if m is None:
-        raise InputError(root, "no dataset.json here (not a dataset directory)")
+        raise not_a_dataset(root)
     if need_complete:
         probs = manifest_problems(m)
         if probs:

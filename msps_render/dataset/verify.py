@@ -18,7 +18,7 @@ from msps_render.dataset import schema as K
 from msps_render.dataset.digest import file_digest
 from msps_render.dataset.manifest import MANIFEST, SHARD_DIR, at_fault, manifest_problems, read_manifest
 from msps_render.dataset.reader import open_shard
-from msps_render.errors import InputError
+from msps_render.errors import not_a_dataset
 
 
 def verify_shard(path: str | Path, expected_sha256: str | None = None, normal_tol: float = 2e-3) -> list[str]:
@@ -126,7 +126,7 @@ def dataset_status(root: str | Path, deep: bool = True) -> DatasetStatus:
     root = Path(root)
     m = read_manifest(root)
     if m is None:
-        raise InputError(root, "no dataset.json here (not a dataset directory)")
+        raise not_a_dataset(root)
     shards = m.get("shards") or {}
     problems: dict[str, list[str]] = {}
     for name, entry in sorted(shards.items()):

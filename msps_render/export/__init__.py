@@ -16,7 +16,8 @@ from msps_render.errors import InputError
 from msps_render.export import diligent, images, psfcn  # noqa: F401  (each registers its format)
 from msps_render.export.formats import FORMATS, ExportFormat, get_format, register  # noqa: F401
 from msps_render.export.source import (PER_LIGHT_CONTENTS, PER_LIGHT_SOURCES, ExportFrame, check_has_frames,
-                                       dataset_variant, iter_export_frames, stored_per_light, write_json)
+                                       dataset_variant, iter_export_frames, sensor_model, stored_per_light,
+                                       write_json)
 from msps_render.io.staging import check_new_out, staged_dir
 
 
@@ -52,11 +53,19 @@ def export_dataset(root: str | Path, fmt: str, out: str | Path, rerender: bool =
         if lights:
             per = {"source": PER_LIGHT_SOURCES["re-rendered" if rerender else "stored"],
                    "contents": PER_LIGHT_CONTENTS, "files": f.light_files}
+        sensor = sensor_model(root)
+        if per is not None and sensor is not None:  # say why sum_k image_k + environment != image
+            per["deviation"] = SENSOR_DEVIATION
         index = {"format": f.name, "dataset": str(root.resolve()), "config_hash": m.get("config_hash"),
-                 "n_frames": len(infos), "conventions": CONVENTIONS, "per_light": per, "frames": infos}
+                 "n_frames": len(infos), "conventions": CONVENTIONS, "sensor_model": sensor, "per_light": per,
+                 "frames": infos}
         write_json(stage / "export.json", index)
     return index
 
+
+SENSOR_DEVIATION = ("the dataset has a sensor model: its images are the sensor's recording (noise, quantisation, "
+                    "clipping at saturation) while the per-light images are clean radiance, so "
+                    "per_light_max_rel_deviation measures the sensor's effect, not a re-rendering error")
 
 CONVENTIONS = {
     "frame": "camera frame: x right, y up, z toward the camera (normals and light directions)",

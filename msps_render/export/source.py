@@ -111,6 +111,11 @@ def iter_export_frames(root: str | Path, per_light: bool = False, variant: str |
             if per_light and rerender:
                 ef.per_light, ef.env_image = rerender_per_light(ef, variant)
                 ef.per_light_source = "re-rendered"
+                if ef.env_ratio > 0 and ef.env_image is None:  # never drop the environment light silently
+                    raise InputError(f"{m.shard_path(e.name)}: frame {fr.index}",
+                                     f"the frame has an environment light (ratio {ef.env_ratio:g}) but its "
+                                     "stored scene has none to re-render; export it without --rerender "
+                                     "(png16/exr) or re-render the dataset with store_per_light = true")
             elif per_light:
                 if fr.per_light is None:
                     raise InputError(m.shard_path(e.name), "shard stores no per-light images; export with --rerender")
@@ -152,6 +157,13 @@ def dataset_variant(root: str | Path) -> str | None:
     m = read_manifest(root) or {}
     v = (m.get("versions") or {}).get("variant")
     return v if v in mitsuba_info().get("variants", ()) else None
+
+
+def sensor_model(root: str | Path) -> dict | None:
+    """The dataset's enabled `[sensor]` table (its images are the sensor's recording), else None."""
+    cfg = (read_manifest(root) or {}).get("config") or {}
+    sensor = cfg.get("sensor") if isinstance(cfg, dict) else None
+    return sensor if isinstance(sensor, dict) and sensor.get("enabled") else None
 
 
 def write_json(path: Path, d) -> Path:

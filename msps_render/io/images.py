@@ -18,9 +18,39 @@ from msps_render.atomic import atomic_write
 from msps_render.errors import InputError
 
 
+# File signatures, so a file with the wrong suffix gets "not an OpenEXR file (looks like PNG)" rather than
+# the library's "Unable to open ... for read".
+MAGIC = {"OpenEXR": (b"\x76\x2f\x31\x01",), "PNG": (b"\x89PNG\r\n\x1a\n",), "Radiance HDR": (b"#?",),
+         "NPY": (b"\x93NUMPY",), "JPEG": (b"\xff\xd8\xff",), "TIFF": (b"II*\x00", b"MM\x00*"),
+         "GIF": (b"GIF8",), "BMP": (b"BM",)}
+
+
+def sniff(p: Path) -> str | None:
+    """The format a file's first bytes say ('OpenEXR', 'PNG', ...), or None."""
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(16)
+    except OSError as e:
+        raise InputError(p, f"cannot read ({e.strerror})") from None
+    return next((name for name, sigs in MAGIC.items() if any(head.startswith(s) for s in sigs)), None)
+
+
+def check_magic(p: Path, expected: str, what: str) -> None:
+    """`InputError` '`what`: not a/an `expected` file (looks like X)' unless file `p` starts with the
+    signature of format `expected` (a `MAGIC` key)."""
+    if p.stat().st_size == 0:
+        raise InputError(p, f"{what}: empty file")
+    got = sniff(p)
+    if got != expected:
+        article = "an" if expected[0] in "AEIOU" else "a"
+        raise InputError(p, f"{what}: not {article} {expected} file "
+                            f"({f'looks like {got}' if got else 'unknown content'})")
+
+
 def _read_exr(p: Path) -> np.ndarray:
     import OpenEXR
 
+    check_magic(p, "OpenEXR", "cannot read EXR")
     try:
         with OpenEXR.File(str(p)) as f:
             ch = f.channels()
@@ -44,6 +74,7 @@ def _read_exr(p: Path) -> np.ndarray:
 def _read_hdr(p: Path) -> np.ndarray:
     import mitsuba as mi  # Bitmap works without a variant; reads Radiance RGBE
 
+    check_magic(p, "Radiance HDR", "cannot read HDR")
     try:
         img = np.array(mi.Bitmap(str(p)), dtype=np.float32)
     except Exception as e:
@@ -54,6 +85,7 @@ def _read_hdr(p: Path) -> np.ndarray:
 
 
 def _read_npy(p: Path) -> np.ndarray:
+    check_magic(p, "NPY", "cannot read NPY")
     try:
         return np.load(p, allow_pickle=False).astype(np.float32)
     except Exception as e:

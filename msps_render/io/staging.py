@@ -10,18 +10,30 @@ from msps_render.atomic import fsync_dir
 from msps_render.errors import InputError
 
 
+def _missing_parents(out: Path) -> list[Path]:
+    """The ancestors of `out` that do not exist yet, deepest first."""
+    missing = []
+    p = out.absolute().parent
+    while not p.exists() and p != p.parent:
+        missing.append(p)
+        p = p.parent
+    return missing
+
+
 def check_new_out(out: Path) -> None:
-    """`out` must not exist or be an empty directory, and its parent must be writable."""
+    """`out` must not exist or be an empty directory, and the nearest existing ancestor must be a
+    writable directory (missing parent folders are created, as `msps render` does)."""
     if out.exists():
         if not out.is_dir():
             raise InputError(out, "--out exists and is not a directory")
         if any(out.iterdir()):
             raise InputError(out, "--out exists and is not empty; choose a new or empty directory")
-    parent = out.parent
-    if not parent.is_dir():
-        raise InputError(out, f"cannot create --out: parent {parent} does not exist")
-    if not os.access(parent, os.W_OK):
-        raise InputError(out, f"cannot create --out: {parent} is not writable")
+    missing = _missing_parents(out)
+    base = missing[-1].parent if missing else out.absolute().parent
+    if not base.is_dir():
+        raise InputError(out, f"cannot create --out: {base} is not a directory")
+    if not os.access(base, os.W_OK):
+        raise InputError(out, f"cannot create --out: {base} is not writable")
 
 
 @contextlib.contextmanager
@@ -29,6 +41,8 @@ def staged_dir(out: Path):
     """Yield a temporary directory beside `out`; on success it becomes `out`, on any error it is removed."""
     out = Path(out)
     check_new_out(out)
+    created = _missing_parents(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     stage = out.parent / f".{out.name}.tmp-{os.getpid()}"
     shutil.rmtree(stage, ignore_errors=True)
     stage.mkdir()
@@ -40,4 +54,7 @@ def staged_dir(out: Path):
         fsync_dir(out.parent)  # the rename lives in the parent: make it durable
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
+        for d in created:  # the parent folders made for `out`, deepest first: nothing left behind
+            with contextlib.suppress(OSError):
+                d.rmdir()
         raise

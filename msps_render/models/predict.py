@@ -77,12 +77,13 @@ def load_calibration(path: str | Path | None, light_dirs: str | None, crosstalk:
 
 
 def read_inputs(image_path: str | Path, mask_path: str | Path | None,
-                linear: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """PNG keeps 16 bits (Pillow would truncate them) and is sRGB-decoded unless `linear`."""
+                linear: bool | None = None, warn=None) -> tuple[np.ndarray, np.ndarray]:
+    """PNG keeps 16 bits (Pillow would truncate them) and is decoded by the rule `compose` uses too
+    (`io.png16.PNG_RULE`; `linear` True/False forces it, `warn` hears a guess)."""
     if Path(image_path).suffix.lower() == ".png":
         from msps_render.compose import read_photo
 
-        img = read_photo(Path(image_path), srgb=not linear).astype(np.float32)
+        img = read_photo(Path(image_path), linear, warn).astype(np.float32)
     else:
         img = read_image(image_path)
     if img.shape[-1] == 4:  # RGBA: the alpha channel carries no radiance
@@ -192,7 +193,7 @@ def write_panel(path: Path, image: np.ndarray, mask: np.ndarray, normal: np.ndar
 def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | None = None,
                  method: str = "net", mask: str | Path | None = None, calibration: str | Path | None = None,
                  light_dirs: str | None = None, crosstalk: str | None = None, warn=None,
-                 linear: bool = False, normal_gt: str | Path | None = None, panel: bool = True) -> list[Path]:
+                 linear: bool | None = None, normal_gt: str | Path | None = None, panel: bool = True) -> list[Path]:
     """Write OUT.npy (H, W, 3 normals), OUT.png (visualisation) and OUT-panel.png (input, prediction;
     with `normal_gt` also the ground truth and the error map, and OUT-metrics.json with the MAE).
 
@@ -200,7 +201,7 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
     the paper's lights for lack of a calibration, and when the given lights differ from the geometry
     the network was trained for (the network takes no light input)."""
     warn = warn or _warn_stderr
-    img, mk = read_inputs(image, mask, linear)
+    img, mk = read_inputs(image, mask, linear, warn)
     gt = read_normal_gt(normal_gt, img.shape[:2]) if normal_gt else None  # before any work: fail early
     calibrated = bool(calibration or light_dirs or crosstalk)
     L, M = load_calibration(calibration, light_dirs, crosstalk)  # validated on both paths

@@ -7,8 +7,8 @@ from typing import Literal
 from pydantic import Field
 
 from msps_render import resources
-from msps_render.config_io import StrictModel, apply_overrides, read_toml, validate
-from msps_render.errors import InputError
+from msps_render.config_io import StrictModel, apply_overrides, check_override_keys, read_toml, validate
+from msps_render.errors import InputError, closest
 
 
 
@@ -62,6 +62,8 @@ class ModelConfig(StrictModel):
 def load_model_config(path_or_name: str | Path, overrides: list[str] = ()) -> ModelConfig:
     p = resources.find("models", path_or_name)
     if p is None:
-        known = ", ".join(resources.names("models"))
-        raise InputError(Path(path_or_name), f"model config not found (presets: {known})")
+        known = resources.names("models")
+        raise InputError(Path(path_or_name), f"model config not found{closest(str(path_or_name), known)} "
+                                             f"(presets: {', '.join(known)})")
+    check_override_keys(overrides, ModelConfig)  # a typo in --set is blamed on --set, not the preset file
     return validate(ModelConfig, apply_overrides(read_toml(p, "model config"), overrides), p)

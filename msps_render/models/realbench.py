@@ -175,7 +175,7 @@ def load_real_object(folder: str | Path, slant_deg: float = 30.0, tilts_deg=(0.0
         if not p.is_file():
             where = "listed in filenames.txt" if (cap.root / "filenames.txt").is_file() else "image"
             raise InputError(p, f"image file not found ({where})")
-    comp = compose_arrays(cap, slant_deg, tilts_deg, M, srgb)
+    comp = compose_arrays(cap, slant_deg, tilts_deg, M, linear=not srgb)  # DiLiGenT layout: linear unless --srgb
     gt, src = read_normal_gt(cap.root, comp.mask.shape)
     return RealObject(name=name or object_name(cap.root), root=cap.root, image=comp.image.astype(np.float32),
                       mask=comp.mask, normal_gt=gt, light_dirs=comp.light_dirs, crosstalk=M,
@@ -362,7 +362,7 @@ def write_report(bench: RealBench, objects: list[RealObject], out: Path, setting
         for m in methods:
             e = error_rgb8(bench.errors[o.name][m])
             e[o.mask & ~o.valid] = grey  # left out: inside the mask, unknown ground truth
-            files.append(write_png(d / f"error_{m}.png", e))
+            files.append(write_png(d / f"error_{m}.png", e, srgb=True))
             files.append(write_png(d / f"normal_{m}.png", normal_to_rgb8(bench.normals[o.name][m], o.mask)))
     # figure: rows = objects; input, ground truth, then per method its normal map and its error map
     ncol = 2 + 2 * len(methods)

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from msps_render.dataset import read_manifest, training_lights
-from msps_render.errors import InputError
+from msps_render.errors import InputError, not_a_dataset
 from msps_render.models.checkpoint import load_checkpoint, save_checkpoint
 from msps_render.models.losses import total_loss
 from msps_render.models.metrics import angular_error
@@ -46,7 +46,7 @@ def data_hash(root: str | Path | Sequence[str | Path]) -> str:
     for r in roots:
         m = read_manifest(r)
         if m is None:
-            raise InputError(r, "no dataset.json here (not a dataset directory)")
+            raise not_a_dataset(r)
         sums.append({k: v["file_sha256"] for k, v in sorted(m["shards"].items())})
     return hashlib.sha256(json.dumps(sums[0] if len(sums) == 1 else sums).encode()).hexdigest()
 

@@ -16,8 +16,8 @@ from typing import Any, Literal
 from pydantic import Field, PrivateAttr, model_validator
 
 from msps_render import resources
-from msps_render.config_io import StrictModel, apply_overrides, read_toml, set_path, validate
-from msps_render.errors import InputError
+from msps_render.config_io import StrictModel, apply_overrides, check_override_keys, read_toml, set_path, validate
+from msps_render.errors import InputError, closest
 from msps_render.pipeline.slurm import SchedulerSection
 from msps_render.render.sensor import SensorConfig
 from msps_render.scene.sample import SceneConfig
@@ -132,14 +132,16 @@ def _qualify(key: str) -> str:
 def resolve_preset(path_or_name: str | Path) -> Path:
     p = resources.find("scenes", path_or_name)
     if p is None:
-        raise InputError(Path(path_or_name), f"config file not found (presets: "
-                                             f"{', '.join(resources.names('scenes')) or 'none'})")
+        known = resources.names("scenes")
+        raise InputError(Path(path_or_name), f"config file not found{closest(str(path_or_name), known)} "
+                                             f"(presets: {', '.join(known) or 'none'})")
     return p
 
 
 def load_config(path_or_name: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> DatasetConfig:
     """Read a preset name or TOML path, apply `key=value` overrides, validate."""
     p = resolve_preset(path_or_name)
+    check_override_keys(overrides, DatasetConfig, _qualify, legacy_scene_sensor)  # blame --set, not the file
     data = apply_overrides(read_toml(p), overrides, _qualify)
     cfg = validate_config(data, str(p))
     cfg._source = str(p)

@@ -162,7 +162,7 @@ def _probe(cfg: DatasetConfig, tasks: list[Task], n: int, variant: str | None,
     C = len(cfg.conditions())
     F = d.frames_per_shard
     mode = "spectral" if cfg.scene.mode == "spectral" else "rgb"
-    variant = variant or resolve_variant(mode)
+    variant = resolve_variant(mode, variant)
     t0 = time.perf_counter()
     activate(variant, threads)
     picks = probe_frames(tasks, C, F, n)

@@ -143,10 +143,10 @@ def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, schedu
     """
     recycle_after = recycle_after if recycle_after is not None else max_tasks_per_child  # old name
     out = Path(out).expanduser().absolute()  # Dask workers resolve relative paths in their own cwd
+    mode = "spectral" if getattr(cfg.scene, "mode", "rgb") == "spectral" else "rgb"
+    variant = resolve_variant(mode, variant)  # a wrong --variant: one line first, not in a worker
     validate_inputs(cfg, getattr(cfg, "_source", None))
     tasks = plan(cfg)
-    mode = "spectral" if getattr(cfg.scene, "mode", "rgb") == "spectral" else "rgb"
-    variant = variant or resolve_variant(mode)
     check_out_dir(out, has_manifest=(out / MANIFEST).is_file())
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)

@@ -2,7 +2,7 @@
 
 `validate_inputs(cfg)` runs in the driver before the output directory is
 touched, for every sweep condition: each mesh file (readable, finite, has
-faces), each environment-map file (finite, non-negative, not black), the
+faces), each environment-map file (finite, non-negative, lighting the camera-facing hemisphere), the
 material catalogue and every measured-material (MERL) table it can draw
 (header and size), texture images and UV mapping, the crosstalk matrix (finite, non-negative, every light
 reaching a channel, invertible), and one sampled scene as a smoke test of the
@@ -12,6 +12,7 @@ a file it could have checked first.
 """
 from __future__ import annotations
 
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,7 @@ from msps_render.brdf.library import available_merl, load_catalogue
 from msps_render.calibration import check_crosstalk
 from msps_render.errors import InputError
 from msps_render.pipeline.config import condition_config
-from msps_render.scene.envmap import irradiance_on_axis, load_envmap
+from msps_render.scene.envmap import check_front_irradiance, load_envmap
 from msps_render.scene.sample import sample_scene
 from msps_render.scene.shapes import build_mesh
 from msps_render.scene.spec import ShapeSpec
@@ -75,13 +76,21 @@ def _check_meshes(sc, seen: set) -> None:
 
 def _check_envmap(sc) -> None:
     env = sc.environment
-    if not env.enabled or env.ratio <= 0 or env.source == "procedural":
+    used = env.ratio > 0 or (env.ratio_range is not None and env.ratio_range[1] > 0)
+    if not env.enabled or not used or env.source == "procedural":
         return
 
     img = load_envmap(env.source)
-    if float(irradiance_on_axis(img).sum()) <= 0 and float(img.max()) <= 0:
+    if float(img.max()) <= 0:
         raise InputError(env.source, "environment map is black (all zero): it cannot light the scene at "
                                      f"the requested ratio {env.ratio}")
+    _check_front(env.source, bool(env.random_rotation))
+
+
+@lru_cache(maxsize=8)
+def _check_front(source: str, random_rotation: bool) -> None:
+    """Once per map and rotation setting (a sweep of env ratios shares one map)."""
+    check_front_irradiance(load_envmap(source), source, random_rotation)
 
 
 def _check_textures(sc, seen: set) -> None:

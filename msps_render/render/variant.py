@@ -16,6 +16,8 @@ import sys
 import warnings
 from functools import lru_cache
 
+from msps_render.errors import InputError, closest
+
 # fastest first; the last entry always works (no JIT)
 PREFERRED = {"rgb": ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb"),
              "spectral": ("cuda_ad_spectral", "llvm_ad_spectral", "scalar_spectral")}
@@ -78,20 +80,47 @@ def failure_line(text: str, returncode: int) -> str:
 BACKENDS = ("cuda", "llvm", "scalar")  # MSPS_VARIANT=llvm: the LLVM variant of whatever mode is rendered
 
 
-def resolve_variant(mode: str = "rgb", requested: str | None = None) -> str:
-    """The variant to render with. `MSPS_VARIANT` or `requested` force one: a variant name, or a
-    backend ('cuda', 'llvm', 'scalar') meaning that backend's variant for `mode` (tests force LLVM
-    this way whatever the machine prefers).  When a faster variant fails its probe, the warning
-    says why (the probe's exception text)."""
+def _expand_backend(value: str, mode: str) -> str:
+    """'llvm' -> the preferred LLVM variant of `mode`; a full variant name is returned as it is."""
+    if value in BACKENDS:
+        return next((v for v in PREFERRED[mode] if v.startswith(value)), value)
+    return value
+
+
+def check_variant(variant: str, mode: str = "rgb", source: str = "--variant") -> str:
+    """`variant` if this Mitsuba has it, it renders `mode` ('rgb' / 'spectral') and it works here,
+    else an `InputError` naming `source` (the option or variable that asked for it).
+
+    Why before any work: a wrong one otherwise fails in a worker, with a traceback, after the
+    output directory exists.  JIT variants are probed like the automatic choice (cached)."""
     import mitsuba as mi
 
-    requested = requested or os.environ.get("MSPS_VARIANT") or None
+    have = list(mi.variants())
+    if variant not in have:
+        raise InputError(source, f"Mitsuba variant '{variant}' is not available{closest(variant, have)} "
+                                 f"(have: {', '.join(have)})")
+    if mode not in variant.split("_"):
+        fits = [v for v in have if mode in v.split("_")]
+        raise InputError(source, f"Mitsuba variant '{variant}' cannot render a {mode}-mode config (scene.mode = "
+                                 f"'{mode}'); use one of: {', '.join(fits) or 'none built'}")
+    if not variant.startswith("scalar"):
+        ok, why = probe_variant(variant)
+        if not ok:
+            raise InputError(source, f"Mitsuba variant '{variant}' does not work on this machine ({why})")
+    return variant
+
+
+def resolve_variant(mode: str = "rgb", requested: str | None = None) -> str:
+    """The variant to render with. `requested` (`--variant`) or `MSPS_VARIANT` force one (checked): a
+    variant name, or a backend ('cuda', 'llvm', 'scalar') meaning that backend's variant for `mode`
+    (tests force LLVM this way whatever the machine prefers).  When a faster variant fails its
+    probe, the warning says why (the probe's exception text)."""
+    import mitsuba as mi
+
     if requested:
-        if requested in BACKENDS:
-            requested = next(v for v in PREFERRED[mode] if v.startswith(requested))
-        if requested not in mi.variants():
-            raise ValueError(f"Mitsuba variant '{requested}' is not available (have: {', '.join(mi.variants())})")
-        return requested
+        return check_variant(_expand_backend(requested, mode), mode, "--variant")
+    if os.environ.get("MSPS_VARIANT"):
+        return check_variant(_expand_backend(os.environ["MSPS_VARIANT"], mode), mode, "MSPS_VARIANT")
     *fast, slow = PREFERRED[mode]
     reasons = []
     for v in fast:

@@ -75,6 +75,18 @@ def envmap_pixels(source: str, seed: int = 0) -> np.ndarray:
     return procedural_sky(seed) if source == "procedural" else load_envmap(source)
 
 
+def _pixel_directions(H: int, W: int, rotation_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """((H, W, 3) world direction each pixel looks along, (H, 1) solid angle per pixel of each row)."""
+    v = (np.arange(H) + 0.5) / H
+    u = (np.arange(W) + 0.5) / W
+    theta = np.pi * v
+    phi = 2 * np.pi * u - np.radians(rotation_deg)
+    st = np.sin(theta)[:, None]
+    d = np.stack([st * np.sin(phi)[None, :], np.cos(theta)[:, None] * np.ones((1, W)),
+                  -st * np.cos(phi)[None, :]], -1)
+    return d, (np.pi / H) * (2 * np.pi / W) * st
+
+
 def irradiance_on_axis(img: np.ndarray, axis=(0.0, 0.0, 1.0), rotation_deg: float = 0.0) -> np.ndarray:
     """Per-channel (3,) cosine-weighted irradiance of the map on a plane facing `axis` (world frame).
 
@@ -87,14 +99,67 @@ def irradiance_on_axis(img: np.ndarray, axis=(0.0, 0.0, 1.0), rotation_deg: floa
     (i + 0.5)/W, (j + 0.5)/H; Mitsuba's bilinear lookup differs by < 1%.
     """
     H, W = img.shape[:2]
-    v = (np.arange(H) + 0.5) / H
-    u = (np.arange(W) + 0.5) / W
-    theta = np.pi * v
-    phi = 2 * np.pi * u - np.radians(rotation_deg)
-    st = np.sin(theta)[:, None]
-    d = np.stack([st * np.sin(phi)[None, :], np.cos(theta)[:, None] * np.ones((1, W)),
-                  -st * np.cos(phi)[None, :]], -1)
+    d, dA = _pixel_directions(H, W, rotation_deg)
     cos = np.clip(d @ np.asarray(axis, dtype=np.float64), 0, None)
-    dA = (np.pi / H) * (2 * np.pi / W) * st
     w = cos * dA
     return np.einsum("hw,hwc->c", w, img[..., :3].astype(np.float64))
+
+
+# `environment_for_ratio` scales a map by ratio x lights / E(+z), E = its channel-summed irradiance on the
+# camera-facing plane.  A surface of normal n then receives ratio x lights x E(n) / E(+z) from it.  Below this
+# fraction E(+z) / max E(n) over camera-facing normals, some visible surface would get more than 100 x the
+# asked ratio of the lights' irradiance: the "ambient" term would swamp the photometric cue it is meant to
+# perturb, and as E(+z) -> 0 the scale diverges.  Real maps sit far above it (venice_sunset_1k: >= 0.49 at
+# every rotation; the procedural sky: >= 0.3).
+MIN_FRONT_FRACTION = 0.01
+_CHECK_ROWS = 64  # maps are box-averaged to at most this many rows for the check (irradiance is an integral)
+
+
+def _fibonacci_hemisphere(n: int = 64) -> np.ndarray:
+    """n roughly uniform unit vectors with z >= 0 (camera-facing normals)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - i / n
+    r = np.sqrt(1.0 - z * z)
+    a = np.pi * (1 + 5 ** 0.5) * i
+    return np.stack([r * np.cos(a), r * np.sin(a), z], -1)
+
+
+def _downsample(img: np.ndarray, rows: int = _CHECK_ROWS) -> np.ndarray:
+    H, W = img.shape[:2]
+    f = max(1, H // rows)
+    g = max(1, W // (2 * rows)) if W >= 2 * rows else 1
+    H2, W2 = H // f, W // g
+    a = img[:H2 * f, :W2 * g, :3].astype(np.float64)
+    return a.reshape(H2, f, W2, g, 3).mean(axis=(1, 3))
+
+
+def front_fraction(img: np.ndarray, rotations=(0.0,)) -> tuple[float, float]:
+    """(smallest E(+z) / max over camera-facing normals n of E(n), the rotation where it occurs).
+
+    E is channel-summed irradiance; 0 for a map that sheds no light on the camera-facing plane."""
+    a = _downsample(img)
+    H, W = a.shape[:2]
+    normals = _fibonacci_hemisphere()
+    worst, at = np.inf, float(rotations[0])
+    for rot in rotations:
+        d, dA = _pixel_directions(H, W, float(rot))
+        rad = (a.sum(-1) * dA).reshape(-1)  # channel-summed radiance x solid angle
+        E = np.clip(d.reshape(-1, 3) @ np.vstack([[0.0, 0.0, 1.0], normals]).T, 0, None).T @ rad
+        top = float(E.max())
+        frac = float(E[0] / top) if top > 0 else 0.0
+        if frac < worst:
+            worst, at = frac, float(rot)
+    return worst, at
+
+
+def check_front_irradiance(img: np.ndarray, source: str | Path, random_rotation: bool) -> None:
+    """`InputError` naming `source` when the map (at any rotation it may be drawn at) lights the
+    camera-facing plane too little to be scaled to an irradiance ratio (see `MIN_FRONT_FRACTION`)."""
+    rotations = np.arange(0.0, 360.0, 10.0) if random_rotation else (0.0,)
+    frac, rot = front_fraction(img, rotations)
+    if frac < MIN_FRONT_FRACTION:
+        where = f" at rotation {rot:g} deg (environment.random_rotation)" if random_rotation else ""
+        raise InputError(source, f"environment map gives almost no light on the camera-facing hemisphere{where}: "
+                                 f"its irradiance there is {frac:.2g} of its maximum on a visible surface "
+                                 f"(needs >= {MIN_FRONT_FRACTION:g}), so scaling it to the requested ratio "
+                                 f"would let it swamp the lights elsewhere")

@@ -325,7 +325,10 @@ def environment_for_ratio(cfg: EnvironmentConfig, light_irradiance: float, rng: 
     seed = int(rng.integers(2**31 - 1))
     img = envmap_pixels(cfg.source, seed)
     e = float(irradiance_on_axis(img, (0.0, 0.0, 1.0), rot).sum())
-    scale = cfg.ratio * light_irradiance / max(e, 1e-12)
+    if not e > 0:  # validate_inputs refuses such maps first (`check_front_irradiance`)
+        raise InputError(cfg.source, f"environment map sheds no light on the camera-facing plane at rotation "
+                                     f"{rot:g} deg: it cannot be scaled to the ratio {cfg.ratio}")
+    scale = cfg.ratio * light_irradiance / e
     return EnvSpec(source=cfg.source, scale=float(scale), rotation_deg=rot, seed=seed, ratio=cfg.ratio)
 
 

@@ -135,7 +135,7 @@ def read_texture_image(path: str | Path) -> np.ndarray:
 
     p = Path(path)
     try:
-        img = read_photo(p, srgb=p.suffix.lower() in (".png", ".jpg", ".jpeg", ".tif", ".tiff"))
+        img = read_photo(p, linear=False)  # PNG forced to sRGB; JPG/TIFF are sRGB, EXR/HDR linear anyway
     except InputError:
         raise
     except Exception as e:  # decoders raise many types on garbage
