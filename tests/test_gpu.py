@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from msps_render.errors import InputError
+
 import msps_render.render.variant as V
 
 TESTS = Path(__file__).resolve().parent
@@ -107,10 +109,16 @@ def test_gpu_present_but_cuda_fails_warns_why_and_uses_llvm(monkeypatch):
 
 def test_msps_variant_backend_shorthand(monkeypatch):
     pytest.importorskip("mitsuba")
+    monkeypatch.setattr(V, "probe_variant", lambda v, *a, **kw: (True, ""))  # the expansion, not this machine's GPU
     for env, mode, want in (("llvm", "rgb", "llvm_ad_rgb"), ("llvm", "spectral", "llvm_ad_spectral"),
                             ("scalar", "spectral", "scalar_spectral"), ("cuda", "rgb", "cuda_ad_rgb")):
         monkeypatch.setenv("MSPS_VARIANT", env)
         assert V.resolve_variant(mode) == want
+    monkeypatch.undo()
+    monkeypatch.setenv("MSPS_VARIANT", "cuda")  # asked for by name where it cannot run: one clear error
+    if not V.probe_variant("cuda_ad_rgb")[0]:
+        with pytest.raises(InputError, match="MSPS_VARIANT: .*cuda_ad_rgb.*does not work"):
+            V.resolve_variant("rgb")
 
 
 def test_force_llvm_beats_a_cuda_preference(monkeypatch):
