@@ -147,14 +147,25 @@ def test_pixels_identical_with_cache_of_one_and_a_large_cache(tmp_path, rgb_vari
 # ------------------------------------------------------------------ disk cache
 @pytest.fixture(scope="module")
 def gold_paint():
-    """(weights, the float64 table the network bakes): baked once for the module (~1-10 s)."""
+    """(weights, the float64 table `make_table` bakes from them): baked once for the module."""
     w = nbrdf.read_weights(nbrdf.weights_path("gold-paint"))
     return w, nbrdf.make_table(w)
 
 
+@pytest.mark.slow
+def test_bake_row_by_row_is_bit_identical_to_the_whole_grid_bake(gold_paint):
+    """`make_table` now evaluates one theta_h row at a time (peak ~10 MiB instead of ~430 MiB of
+    activations): the same float32 products and sums per bin, so exactly the table msps <= issue 21
+    baked from the whole bin grid at once (and wrote to the v1 caches)."""
+    w, table = gold_paint
+    whole = np.ascontiguousarray(np.moveaxis(nbrdf.evaluate(w, *merl.bin_centres()), -1, 0), dtype=np.float64)
+    assert np.array_equal(table, whole)
+
+
 @pytest.fixture
 def bakes(monkeypatch, gold_paint):
-    """Counts `nbrdf.make_table` calls (bakes), answering with the module's table instead of re-baking."""
+    """Counts `nbrdf.make_table` calls (bakes), answering with the module's real bake instead of
+    baking again (~1 s idle, up to a minute on the shared machine)."""
     calls = []
 
     def make_table(w):
@@ -172,8 +183,9 @@ def _v1_file(cache, gold_paint):
     return merl.write_merl(cache / f"nbrdf-gold-paint-{w.digest}-v1.binary", table)
 
 
-def test_baked_table_is_float32_and_half_the_disk(cache, gold_paint):
-    p = nbrdf.baked_table(nbrdf.weights_path("gold-paint"))  # a real bake
+def test_baked_table_is_float32_and_half_the_disk(cache, gold_paint, bakes):
+    p = nbrdf.baked_table(nbrdf.weights_path("gold-paint"))
+    assert len(bakes) == 1
     assert p.name == f"nbrdf-gold-paint-{gold_paint[0].digest}-v2.npy" and p.parent == cache
     assert p.stat().st_size == merl.BAKED_FILE_BYTES == 17_496_128  # vs merl.FILE_BYTES = 34,992,012
     t = merl.read_table(p)

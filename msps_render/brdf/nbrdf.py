@@ -90,9 +90,15 @@ def make_table(w: NbrdfWeights) -> np.ndarray:
 
     Bins whose incoming direction lies below the horizon (MERL stores -1 there)
     get the network's smooth continuation, as the generated tables do.
+
+    Evaluated one theta_h row at a time: the whole grid at once held ~430 MiB of layer
+    activations, in whichever render worker baked a table first; per row the results
+    are bit-identical (tests/test_scale_memory.py) and the peak ~10 MiB.
     """
     th, td, pd = merl.bin_centres()
-    vals = evaluate(w, th, td, pd)  # (90, 90, 180, 3)
+    vals = np.empty((*merl.DIMS, 3), np.float32)
+    for i in range(merl.RES_THETA_H):
+        vals[i] = evaluate(w, th[i], td[i], pd[i])  # (90, 180, 3)
     return np.ascontiguousarray(np.moveaxis(vals, -1, 0), dtype=np.float64)
 
 
