@@ -104,6 +104,86 @@ def write_merl(path: str | os.PathLike, rgb: np.ndarray) -> Path:
     return p
 
 
+# ------------------------------------------------------- baked float32 tables
+BAKED_SUFFIX = ".npy"
+BAKED_DTYPE = "<f4"
+BAKED_SHAPE = (N_BINS, 3)  # interleaved RGB per bin: the renderer's device layout, so it maps the file as is
+
+
+def _npy_header_bytes() -> int:
+    import io
+
+    b = io.BytesIO()
+    np.lib.format.write_array_header_1_0(b, {"descr": BAKED_DTYPE, "fortran_order": False, "shape": BAKED_SHAPE})
+    return b.tell()
+
+
+BAKED_FILE_BYTES = _npy_header_bytes() + 3 * N_BINS * 4  # 17,496,128: half a MERL file
+
+
+def write_baked(path: str | os.PathLike, rgb: np.ndarray) -> Path:
+    """Write BRDF values (3, 90, 90, 180), 1/sr, as a float32 `.npy` table, atomically.
+
+    Why float32: the renderer uses float32 tables anyway, so a float64 MERL file spends
+    35 MB of disk per cached table on digits nobody reads.  Why interleaved (N_BINS, 3):
+    it is the layout the BSDF gathers from, so the renderer memory-maps the file instead
+    of reading and transposing it (`map_baked`).  Non-finite and negative values are
+    stored as 0, as `read_merl` returns them.
+    """
+    rgb = np.asarray(rgb)
+    if rgb.shape != (3, *DIMS):
+        raise ValueError(f"MERL table must have shape {(3, *DIMS)}, got {rgb.shape}")
+    vals = rgb.astype(BAKED_DTYPE)
+    vals = np.where(np.isfinite(vals) & (vals >= 0), vals, np.float32(0.0))
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(p, unique=True) as tmp, open(tmp, "wb") as fh:  # unique: workers may bake at once
+        np.save(fh, np.ascontiguousarray(vals.reshape(3, -1).T), allow_pickle=False)
+    return p
+
+
+def map_baked(path: str | os.PathLike) -> np.ndarray:
+    """The (N_BINS, 3) float32 values of a `write_baked` file, memory-mapped read-only.
+
+    Why mapped: pages come from the OS page cache, shared by every process reading
+    the same table, and loading costs no read or copy.  The cache files are only
+    ever replaced by rename, never rewritten in place, so a mapping stays valid.
+    `InputError` naming the file when it is not such a table.
+    """
+    p = Path(path)
+    try:
+        size = p.stat().st_size
+        with open(p, "rb") as fh:
+            major, _ = np.lib.format.read_magic(fh)
+            read_header = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+            shape, fortran, dt = read_header(fh)
+            offset = fh.tell()
+    except OSError as e:
+        raise InputError(p, f"cannot read baked BRDF table ({e.strerror or e})") from None
+    except ValueError as e:
+        raise InputError(p, f"not a baked BRDF table ({e})") from None
+    if shape != BAKED_SHAPE or fortran or dt != np.dtype(BAKED_DTYPE):
+        raise InputError(p, f"not a baked BRDF table: {dt} array of shape {shape}, expected {BAKED_DTYPE} "
+                            f"{BAKED_SHAPE}")
+    if size != offset + 3 * N_BINS * 4:
+        raise InputError(p, f"{'truncated' if size < offset + 3 * N_BINS * 4 else 'oversized'} baked table: "
+                            f"{size} bytes, expected {offset + 3 * N_BINS * 4}")
+    return np.memmap(p, dtype=BAKED_DTYPE, mode="r", offset=offset, shape=BAKED_SHAPE)
+
+
+def read_baked(path: str | os.PathLike, dtype=np.float32) -> MerlTable:
+    """A `write_baked` file as a `MerlTable` (rgb (3, 90, 90, 180), read into memory)."""
+    inter = np.array(map_baked(path), dtype=dtype)
+    return MerlTable(rgb=inter.T.reshape(3, *DIMS), path=str(path))
+
+
+def read_table(path: str | os.PathLike, dtype=np.float32) -> MerlTable:
+    """Any measured table msps reads: a baked float32 `.npy` or a MERL `.binary`."""
+    if str(path).endswith(BAKED_SUFFIX):
+        return read_baked(path, dtype)
+    return read_merl(path, dtype)
+
+
 # ----------------------------------------------------------------- coordinates
 def _rotate(v: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     """MERL's `rotate_vector` (Rodrigues), vectorised over the leading axis of v/angle."""

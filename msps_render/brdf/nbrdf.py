@@ -8,6 +8,11 @@ the same reader/plugin as a real MERL file.  Baking costs ~1 s per material
 (`benchmarks/bench_merl.py`), the table is cached on disk like the generated
 tables (atomic write, keyed by the weights' hash), and a lookup in the baked
 table differs from the network only by MERL's own binning.
+
+Cache format v2 is a float32 `.npy` (17.5 MB; the network computes in float32,
+so nothing is lost); v1 caches (float64 MERL `.binary`, 35 MB) are converted on
+first use -- the same float32 values, bit for bit -- and left in place for older
+msps versions sharing the cache (`rm $cache/nbrdf-*-v1.binary` frees them).
 """
 from __future__ import annotations
 
@@ -24,7 +29,7 @@ from msps_render.brdf.analytic import cache_dir
 from msps_render.errors import InputError
 from msps_render.resources import data_dir
 
-BAKE_VERSION = 1  # bump when the baking rule changes
+BAKE_VERSION = 2  # bump when the baking rule or file format changes (2: float32 .npy)
 _LAYERS = (("dense_1", (6, 21)), ("dense_2", (21, 21)), ("dense_3", (21, 3)))
 
 
@@ -85,9 +90,15 @@ def make_table(w: NbrdfWeights) -> np.ndarray:
 
     Bins whose incoming direction lies below the horizon (MERL stores -1 there)
     get the network's smooth continuation, as the generated tables do.
+
+    Evaluated one theta_h row at a time: the whole grid at once held ~430 MiB of layer
+    activations, in whichever render worker baked a table first; per row the results
+    are bit-identical (tests/test_scale_memory.py) and the peak ~10 MiB.
     """
     th, td, pd = merl.bin_centres()
-    vals = evaluate(w, th, td, pd)  # (90, 90, 180, 3)
+    vals = np.empty((*merl.DIMS, 3), np.float32)
+    for i in range(merl.RES_THETA_H):
+        vals[i] = evaluate(w, th[i], td[i], pd[i])  # (90, 180, 3)
     return np.ascontiguousarray(np.moveaxis(vals, -1, 0), dtype=np.float64)
 
 
@@ -114,17 +125,24 @@ def _digest(path: str, mtime_ns: int, size: int) -> str:
 
 
 def baked_table(weights: str | os.PathLike, directory: str | os.PathLike | None = None) -> Path:
-    """Path of the MERL table baked from `weights`, baking it once (atomic write) if absent."""
+    """Path of the float32 table baked from `weights` (`merl.read_table` reads it), baking it once
+    (atomic write) if absent, or converting a v1 float64 cache of the same weights."""
     p = Path(weights)
     if not p.is_file():
         read_weights(p)  # raises the InputError naming the file
     st = p.stat()
     digest = _digest(str(p), st.st_mtime_ns, st.st_size)
     d = Path(directory) if directory is not None else cache_dir()
-    path = d / f"nbrdf-{p.stem}-{digest}-v{BAKE_VERSION}.binary"
-    if path.is_file() and path.stat().st_size == merl.FILE_BYTES:
+    path = d / f"nbrdf-{p.stem}-{digest}-v{BAKE_VERSION}{merl.BAKED_SUFFIX}"
+    if path.is_file() and path.stat().st_size == merl.BAKED_FILE_BYTES:
         return path
-    return merl.write_merl(path, make_table(read_weights(p)))
+    old = d / f"nbrdf-{p.stem}-{digest}-v1.binary"  # float64 cache of msps <= issue 21
+    if old.is_file():
+        try:
+            return merl.write_baked(path, merl.read_merl(old, dtype=np.float32).rgb)
+        except InputError:  # damaged or vanished: bake afresh
+            pass
+    return merl.write_baked(path, make_table(read_weights(p)))
 
 
 def rusinkiewicz_dirs(theta_h: float, theta_d: float, phi_d: float) -> tuple[np.ndarray, np.ndarray]:

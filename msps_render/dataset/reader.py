@@ -34,6 +34,7 @@ def open_shard(path: str | Path, mode: str = "r", chunk_cache: bool = True):
     into the caller's array instead of through its chunk cache (~10% less CPU per shard).
     """
     import h5py
+    import hdf5plugin  # noqa: F401 - registers the zstd / Blosc2 filters a shard may use
 
     return h5py.File(path, mode) if chunk_cache else h5py.File(path, mode, rdcc_nbytes=0)
 

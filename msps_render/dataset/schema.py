@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 FORMAT_VERSION = 1
-COMPRESSIONS = ("lzf", "gzip", "none")
+COMPRESSIONS = ("lzf", "gzip", "zstd", "blosc2-lz4", "none")  # zstd and blosc2-lz4: hdf5plugin filters
 PATCH_CHUNK = 16  # patches per HDF5 chunk: small enough for cheap random access
 
 PATCHES = "patches"

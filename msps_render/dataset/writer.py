@@ -18,16 +18,35 @@ from msps_render.dataset.digest import array_digest, file_digest
 from msps_render.dataset.schema import ShardContent
 
 
-def create_array(group, name: str, data: np.ndarray, compression: str, chunks=None):
-    """One numeric dataset with the shard's filters (fletcher32; lzf/gzip + shuffle)."""
-    kw = {"track_times": False}
-    if compression != "none" and data.ndim >= 1 and data.size > 0:
-        kw.update(compression="gzip" if compression == "gzip" else "lzf", shuffle=True, fletcher32=True,
-                  chunks=chunks or True)
+def filter_kwargs(compression: str) -> dict:
+    """h5py `create_dataset` arguments of a `dataset.storage.compression` value (chunked arrays).
+
+    Every filter is followed by fletcher32 (the per-chunk checksum `msps verify` relies on).
+    lzf (h5py's own) and gzip level 4 use HDF5's byte shuffle; zstd (level 3) too; blosc2-lz4
+    (level 5) shuffles bytes inside Blosc2 (SIMD, cheaper than HDF5's).  zstd and blosc2-lz4 are
+    HDF5 plugin filters from `hdf5plugin`, which every reader imports (`open_shard`).
+    """
+    if compression == "none":
+        return {"fletcher32": True}
+    if compression in ("lzf", "gzip"):
+        kw = {"compression": compression, "shuffle": True, "fletcher32": True}
         if compression == "gzip":
             kw["compression_opts"] = 4
-    elif data.size > 0 and data.ndim >= 1:
-        kw.update(fletcher32=True, chunks=chunks or True)
+        return kw
+    import hdf5plugin
+
+    if compression == "zstd":
+        return {**hdf5plugin.Zstd(clevel=3), "shuffle": True, "fletcher32": True}
+    if compression == "blosc2-lz4":
+        return {**hdf5plugin.Blosc2(cname="lz4", clevel=5, filters=hdf5plugin.Blosc2.SHUFFLE), "fletcher32": True}
+    raise ValueError(f"compression must be one of {K.COMPRESSIONS}, got {compression!r}")
+
+
+def create_array(group, name: str, data: np.ndarray, compression: str, chunks=None):
+    """One numeric dataset with the shard's filters (`filter_kwargs`); empty and scalar arrays unfiltered."""
+    kw = {"track_times": False}
+    if data.size > 0 and data.ndim >= 1:
+        kw.update(filter_kwargs(compression), chunks=chunks or True)
     return group.create_dataset(name, data=data, **kw)
 
 

@@ -32,7 +32,9 @@ class PatchConfig(StrictModel):
 
 
 class StorageConfig(StrictModel):
-    compression: Literal["lzf", "gzip", "none"] = Field("lzf", description="HDF5 filter of every array")
+    compression: Literal["lzf", "gzip", "zstd", "blosc2-lz4", "none"] = Field(
+        "lzf", description="HDF5 filter of every array (zstd, blosc2-lz4: hdf5plugin; faster to read, "
+                           "docs/benchmarks.md \"Storage filters\")")
     image_dtype: Literal["float16", "float32"] = Field("float16", description="stored dtype of patch images")
     normal_dtype: Literal["float16", "float32"] = Field("float16", description="stored dtype of patch normals")
     store_frames: bool = Field(False, description="also keep whole frames (test sets)")

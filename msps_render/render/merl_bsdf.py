@@ -14,20 +14,32 @@ Mitsuba does for unbounded sRGB spectra; the rgb2spec coefficients are
 pre-fetched on its own 3 x 64 x 64 node grid, so bilinear interpolation in
 the kernel reproduces `srgb_model_fetch`.
 
-Memory: one table is 3 x 1,458,000 float32 = 17.5 MB on the device, loaded
-once per (file, variant) per process and shared by every scene and shape.
+Memory: one table is 3 x 1,458,000 float32 = 17.5 MB, a read-only memory map of
+its float32 cache file (LLVM variants use it without a copy; the pages are the OS
+page cache, shared by all workers), shared by every scene and shape of the
+process; at most $MSPS_TABLE_CACHE (default 8) are kept per process
+(`TableCache`, least recently used evicted), so a worker's memory does not grow
+with the number of measured materials (docs/benchmarks.md "Worker memory per
+measured material").
 Mitsuba is imported lazily, inside functions.
 """
 from __future__ import annotations
 
 import functools
+import hashlib
 import logging
 import math
+import os
+from collections import OrderedDict
+from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from msps_render.brdf import merl
+from msps_render.brdf.analytic import cache_dir
 from msps_render.brdf.library import resolve_table
+from msps_render.errors import InputError
 from msps_render.render.variant import register_plugin
 
 log = logging.getLogger(__name__)
@@ -37,30 +49,117 @@ _RGB2SPEC_RES = 64  # Mitsuba's srgb.coeff resolution
 
 
 # ----------------------------------------------------------------- table cache
-def _load_table(path: str) -> tuple[np.ndarray, float, float]:
-    """(interleaved (N, 3) float32 table, lobe alpha, lobe weight) of a MERL file."""
-    t = merl.read_merl(path, dtype=np.float32)
-    if t.n_negative or t.n_nonfinite:
-        log.info("%s: %d negative and %d non-finite entries set to 0", path, t.n_negative, t.n_nonfinite)
-    alpha, weight = merl.fit_sampling_lobe(t.rgb)
-    return np.ascontiguousarray(t.rgb.reshape(3, -1).T), alpha, weight
+TABLE_CACHE_ENV = "MSPS_TABLE_CACHE"
+DEFAULT_TABLE_CACHE = 8  # tables kept per process: ~17 MiB each (docs/benchmarks.md "Worker memory per material")
 
 
-@functools.lru_cache(maxsize=None)
-def device_table(path: str, variant: str):
-    """The table as a drjit Float (JIT variants) or numpy array (scalar variants), once per variant.
+def _baked_file(path: str) -> str:
+    """The float32 interleaved table file (`merl.write_baked`) behind any table file.
 
-    Read-only and shared by every BSDF instance of the process (the only global state).
+    Baked Neural-BRDF tables already are one; a MERL `.binary` (real or generated) is
+    converted once into the cache folder, keyed by its path, size and mtime, so evicting
+    and reloading it later costs a memory map instead of a 35 MB float64 read.
     """
+    if path.endswith(merl.BAKED_SUFFIX):
+        return path
+    try:
+        st = os.stat(path)
+    except OSError as e:
+        raise InputError(path, f"cannot read MERL file ({e.strerror})") from None
+    key = hashlib.sha1(f"{os.path.realpath(path)}|{st.st_size}|{st.st_mtime_ns}".encode()).hexdigest()[:16]
+    out = cache_dir() / f"table-{Path(path).stem}-{key}-v2{merl.BAKED_SUFFIX}"
+    if not (out.is_file() and out.stat().st_size == merl.BAKED_FILE_BYTES):
+        t = merl.read_merl(path, dtype=np.float32)
+        if t.n_negative or t.n_nonfinite:
+            log.info("%s: %d negative and %d non-finite entries set to 0", path, t.n_negative, t.n_nonfinite)
+        merl.write_baked(out, t.rgb)
+    return str(out)
+
+
+def _load_table(path: str) -> tuple[np.ndarray, float, float]:
+    """(memory-mapped interleaved (N, 3) float32 table, lobe alpha, lobe weight) of a table file."""
+    inter = merl.map_baked(_baked_file(path))
+    if path not in _LOBES:  # a pure function of the file: reloading an evicted table skips the fit
+        _LOBES[path] = merl.fit_sampling_lobe(inter.T.reshape(3, *merl.DIMS))
+    alpha, weight = _LOBES[path]
+    return inter, alpha, weight
+
+
+_LOBES: dict[str, tuple[float, float]] = {}  # path -> (alpha, weight): two floats per table, unbounded
+
+
+def table_cache_size() -> int:
+    """Tables kept per process: $MSPS_TABLE_CACHE (>= 1), else `DEFAULT_TABLE_CACHE`."""
+    v = os.environ.get(TABLE_CACHE_ENV, "").strip()
+    if not v:
+        return DEFAULT_TABLE_CACHE
+    try:
+        n = int(v)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise InputError(TABLE_CACHE_ENV, f"must be a whole number >= 1 (tables kept per process), got {v!r}")
+    return n
+
+
+class CacheInfo(NamedTuple):
+    hits: int
+    misses: int
+    maxsize: int
+    currsize: int
+
+
+class TableCache:
+    """LRU of device tables by (path, variant), at most `table_cache_size()` of them.
+
+    Why bounded: a table is 16.7 MiB on the device and a corpus may draw from any
+    number of measured materials, so an unbounded cache made a worker's memory grow
+    with the catalogue (64 materials: ~1.5 GiB).  Evicting drops the cache's
+    reference only; the drjit array (a memory map of the float32 table file, shared
+    with every process mapping it) is released as soon as no live scene holds it, and
+    a later scene maps the same float32 values again (pixels do not change).
+    """
+
+    def __init__(self) -> None:
+        self._tables: OrderedDict[tuple[str, str], tuple] = OrderedDict()
+        self.hits = self.misses = 0
+
+    def __call__(self, path: str, variant: str):
+        """The table as a drjit Float (JIT variants) or numpy array (scalar variants), with lobe (alpha, weight)."""
+        key = (path, variant)
+        if key in self._tables:
+            self.hits += 1
+            self._tables.move_to_end(key)
+            return self._tables[key]
+        self.misses += 1
+        entry = _device_table(path)
+        limit = table_cache_size()
+        while len(self._tables) >= limit:
+            self._tables.popitem(last=False)
+        self._tables[key] = entry
+        return entry
+
+    def cache_info(self) -> CacheInfo:
+        return CacheInfo(self.hits, self.misses, table_cache_size(), len(self._tables))
+
+    def cache_clear(self) -> None:
+        self._tables.clear()
+        self.hits = self.misses = 0
+
+
+def _device_table(path: str):
     import drjit as dr
     import mitsuba as mi
 
     inter, alpha, weight = _load_table(path)
     if dr.is_jit_v(mi.Float):
-        data = mi.Float(inter.reshape(-1))
+        data = mi.Float(inter.reshape(-1))  # LLVM: no copy, drjit keeps the mapping alive while in use
         dr.make_opaque(data)
         return data, alpha, weight
     return inter, alpha, weight
+
+
+device_table = TableCache()  # read-only tables shared by every BSDF instance of the process (the only global state)
 
 
 @functools.lru_cache(maxsize=None)
