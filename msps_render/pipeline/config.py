@@ -18,7 +18,7 @@ from pydantic import Field, PrivateAttr, model_validator
 from msps_render import resources
 from msps_render.config_io import StrictModel, apply_overrides, check_override_keys, read_toml, set_path, validate
 from msps_render.errors import InputError, closest
-from msps_render.pipeline.slurm import SchedulerSection
+from msps_render.pipeline.scheduler_config import SchedulerSection
 from msps_render.render.sensor import SensorConfig
 from msps_render.scene.sample import SceneConfig
 

@@ -48,7 +48,7 @@ def check_material_pool(task: Task, ws: WorkerSettings, cfg: DatasetConfig) -> N
     than the dataset records (other MERL files, other built-in fits): shards would silently differ."""
     if ws.material_pool is None:
         return
-    from msps_render.brdf.library import material_pool, pool_difference
+    from msps_render.scene.materials import material_pool, pool_difference
 
     why = pool_difference(ws.material_pool.get(task.condition, {}), material_pool(cfg.scene.materials))
     if why:

@@ -14,7 +14,7 @@ import msps_render
 from msps_render.dataset import file_digest
 from msps_render.dataset.manifest import MANIFEST, SHARD_DIR, new_manifest, read_manifest, write_manifest
 from msps_render.errors import InputError, Interrupted
-from msps_render.brdf.library import material_pool, pool_difference
+from msps_render.scene.materials import material_pool, pool_difference
 from msps_render.config_io import apply_overrides
 from msps_render.pipeline.config import (DatasetConfig, _qualify, config_hash, config_json, validate_config)
 from msps_render.pipeline.execute import WorkerSettings, run_dask, run_local
@@ -58,7 +58,7 @@ def renderer_difference(stored: dict, here: dict) -> str | None:
 
 def pools_of(tasks) -> dict[str, dict[str, str]]:
     """{condition: {material: content digest}}: the measured-material pool each condition draws from
-    on this host (`brdf.library.material_pool`)."""
+    on this host (`scene.materials.material_pool`)."""
     out: dict[str, dict[str, str]] = {}
     for t in tasks:
         if t.condition not in out:

@@ -10,6 +10,7 @@ is `msps_render.render.materials`.
 """
 from __future__ import annotations
 
+import functools
 import logging
 import os
 from pathlib import Path
@@ -133,3 +134,76 @@ def sample_materials(rng: np.random.Generator, n: int, catalogue: str | os.PathL
     out = [mats[int(i)] for i in order]
     log.info("materials: %s", ", ".join(m.name for m in out))
     return out
+
+
+# ------------------------------------------------------- the measured-material pool of a host
+@functools.lru_cache(maxsize=1024)
+def _file_sha256(path: str, mtime_ns: int, size: int) -> str:
+    """Content digest of a table or weights file, read once per file version (a MERL file is 33 MB;
+    a resume or a worker asks once per process)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _table_digest(m) -> str:
+    """What a pool entry renders with: the MERL file's or Neural-BRDF weights' content digest, or
+    (generated tables) the digest of the model parameters they are built from."""
+    import hashlib
+    import json
+
+    table = m.params.get("table", "")
+    if table.startswith("nbrdf:"):
+        p = nbrdf.weights_path(table[6:])
+    elif table.startswith("generated"):
+        blob = json.dumps({k: v for k, v in m.params.items()}, sort_keys=True, default=list)
+        return "params:" + hashlib.sha256(blob.encode()).hexdigest()
+    else:
+        p = Path(table)
+    if p is None or not Path(p).is_file():
+        return "missing"
+    st = Path(p).stat()
+    return _file_sha256(str(Path(p).resolve()), st.st_mtime_ns, st.st_size)
+
+
+def material_pool(mc) -> dict[str, str]:
+    """{material name: content digest} of the measured materials a scene may draw from here, under
+    the `[scene.materials]` config `mc` (catalogue, measured source, held-out side, merl_dir).
+
+    Why: which files exist (MSPS_MERL_DIR, brdf/, the built-in fits) is not part of the config, so
+    two hosts with one config hash can draw different materials.  The manifest records this pool; a
+    resume or a worker that sees another one stops (`pool_difference`).  Empty when no measured
+    material is drawn (merl_fraction = 0)."""
+    if not mc.merl_fraction > 0:
+        return {}
+
+    pool = measured_pool(load_catalogue(mc.catalogue), mc.measured, mc.merl_dir)
+    if mc.holdout != "all" and mc.measured != "generated":
+        test = held_out(mc.split_file)
+        pool = [m for m in pool if (_base_name(m) in test) == (mc.holdout == "test")]
+    return {m.name: _table_digest(m) for m in pool}
+
+
+def pool_difference(stored: dict[str, str], here: dict[str, str], limit: int = 4) -> str | None:
+    """None if both pools are the same, else a short description naming the differing materials."""
+    if stored == here:
+        return None
+    only_stored = sorted(set(stored) - set(here))
+    only_here = sorted(set(here) - set(stored))
+    changed = sorted(n for n in set(stored) & set(here) if stored[n] != here[n])
+
+    def names(xs: list[str]) -> str:
+        return ", ".join(xs[:limit]) + (f" and {len(xs) - limit} more" if len(xs) > limit else "")
+
+    parts = []
+    if only_stored:
+        parts.append(f"missing here: {names(only_stored)}")
+    if only_here:
+        parts.append(f"only here: {names(only_here)}")
+    if changed:
+        parts.append(f"different file content: {names(changed)}")
+    return "; ".join(parts)
