@@ -138,7 +138,7 @@ def test_deterministic_bytes_and_cli(frames_ds, tmp_path):
 
 def test_one_line_errors_write_nothing(frames_ds, tmp_path):
     line = one_line_error(cli("preview", tmp_path / "nowhere", "--out", tmp_path / "x.png"))
-    assert "nowhere" in line and "dataset.json" in line
+    assert "nowhere" in line and "does not exist" in line  # the missing path itself, not "no dataset.json" (issue 22)
     bad = make_dataset(tmp_path / "bad", store_frames=True, n_shards=1)
     (bad / "shards" / "shard-00000.h5").write_bytes(b"not hdf5")
     line = one_line_error(cli("preview", bad, "--out", tmp_path / "x.png"))
