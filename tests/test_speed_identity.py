@@ -152,7 +152,8 @@ def test_real_sh_basis_equals_reference():
 
 
 def test_mesh_and_parts_bit_identical(paper_specs):
-    shapes._canonical_cached.cache_clear()
+    shapes._CANONICAL.clear()
+    built = []
     for rep in range(2):  # the second pass is served from the canonical-mesh cache
         for spec in paper_specs:
             new, ref = shapes.build_mesh(spec.shape), _ref_build_mesh(spec.shape)
@@ -160,8 +161,18 @@ def test_mesh_and_parts_bit_identical(paper_specs):
                 a, b = getattr(new, name), getattr(ref, name)
                 assert a.dtype == b.dtype and np.array_equal(a, b), name
             assert np.array_equal(shapes.face_parts(new, spec.split), _ref_face_parts(ref, spec.split))
-    info = shapes._canonical_cached.cache_info()
-    assert info.hits >= len(paper_specs) and info.currsize <= 9  # paper-train draws from 9 shapes
+        built.append(len(shapes._CANONICAL))
+    n_shapes = len({s.shape.name for s in paper_specs})
+    assert built == [n_shapes, n_shapes] and n_shapes <= 9  # paper-train draws from 9 shapes
+
+
+def test_canonical_cache_is_bounded(paper_specs, monkeypatch):
+    shapes._CANONICAL.clear()
+    one = shapes.build_mesh(paper_specs[0].shape)
+    monkeypatch.setattr(shapes, "CANONICAL_CACHE_BYTES", 1.5 * (one.vertices.size * 8 + one.faces.size * 8))
+    for spec in paper_specs:
+        shapes.build_mesh(spec.shape)
+    assert len(shapes._CANONICAL) == 1  # a second blob would pass the bound: the older one went
 
 
 def test_cached_canonical_mesh_is_read_only(paper_specs):

@@ -13,7 +13,7 @@ self-intersect; amplitudes decay with l so it stays smooth.
 """
 from __future__ import annotations
 
-from functools import lru_cache
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -173,18 +173,30 @@ def _canonical(shape: ShapeSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray | N
     return normalise(v, shape.radius), f, uv
 
 
-@lru_cache(maxsize=32)
+CANONICAL_CACHE_BYTES = 32 << 20  # canonical meshes kept per process (a paper-train blob is 0.7 MB)
+_CANONICAL: OrderedDict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = OrderedDict()
+
+
 def _canonical_cached(kind: str, name: str, sh_coeffs: tuple, subdivisions: int, params: tuple,
                       radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """`_canonical` of a generated shape, kept per process: a corpus draws its objects from a small
     pool (paper-train: 9 blobs) and only the rotation changes from frame to frame, so the mesh
-    before the rotation is built once per shape (the same arrays as building it again).
-    Mesh files are not cached (they may change on disk)."""
+    before the rotation is built once per shape (the same arrays as building it again).  Least
+    recently used meshes are dropped beyond `CANONICAL_CACHE_BYTES` (flat worker memory); mesh
+    files are not cached (they may change on disk)."""
+    key = (kind, name, sh_coeffs, subdivisions, params, radius)
+    hit = _CANONICAL.get(key)
+    if hit is not None:
+        _CANONICAL.move_to_end(key)
+        return hit
     shape = ShapeSpec(kind=kind, name=name, sh_coeffs=sh_coeffs, subdivisions=subdivisions,
                       params=dict(params), radius=radius)
     v, f, uv = _canonical(shape)
     for a in (v, f):
         a.setflags(write=False)
+    _CANONICAL[key] = (v, f, uv)
+    while len(_CANONICAL) > 1 and sum(a.nbytes for m in _CANONICAL.values() for a in m[:2]) > CANONICAL_CACHE_BYTES:
+        _CANONICAL.popitem(last=False)
     return v, f, uv
 
 
