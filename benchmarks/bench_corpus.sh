@@ -6,11 +6,17 @@
 #   e.g. bash benchmarks/bench_corpus.sh c72a7ec HEAD /tmp/corpus 2
 #   FRESH_JIT=1 ...   each render starts with an empty drjit kernel disk cache (~/.drjit), as on a
 #                     first run; by default the cache is whatever earlier runs left (warm)
+#   TRAIN_SHARDS=24 VAL_SHARDS=4 ...   a reduced corpus (the first N shards of each preset), for a
+#                     machine too busy for the full one
+#   ROUNDS=3 ...      repeat old/new that many times, alternating which goes first (interleaved runs
+#                     on a shared machine: compare medians)
 #
 # Each ref is checked out into OUT/src-<ref> (git worktree) and run with this checkout's venv
 # (`PYTHONPATH` = that tree, so presets, brdf/ and the code are the ref's own).  The baked
 # Neural-BRDF tables are shared through one MSPS_CACHE_DIR, warmed before timing starts, so
-# neither run pays the one-off bake.  Results: OUT/results.tsv (ref, preset, seconds, patches).
+# neither run pays the one-off bake.  Results: OUT/results.tsv (ref, preset, wall seconds, patches,
+# jit cache, CPU seconds = user + sys of the render and its workers, round).  CPU seconds are the
+# robust number on a machine shared with other jobs (wall time there measures the other jobs too).
 set -euo pipefail
 old=${1:?OLD_REF}; new=${2:?NEW_REF}; out=${3:?OUT}; workers=${4:-2}
 root=$(cd "$(dirname "$0")/.." && pwd)
@@ -40,19 +46,32 @@ for s in "$oldsrc" "$newsrc"; do
 done
 rm -rf "$out/warm"
 
-for s in "$oldsrc" "$newsrc"; do
-  ref=$(git -C "$s" rev-parse --short HEAD)
-  for preset in paper-train paper-val; do
-    d="$out/$ref/$preset"
-    rm -rf "$d"
-    home=$HOME
-    [ "${FRESH_JIT:-0}" = 1 ] && home=$(mktemp -d)
-    t0=$(date +%s.%N)
-    (cd "$s" && HOME="$home" PYTHONPATH="$s" "$py" -m msps_render.cli render "$preset" --out "$d" \
-        --workers "$workers" > "$out/$ref-$preset.log" 2>&1)
-    t1=$(date +%s.%N)
-    n=$("$py" -c "import json,sys; print(json.load(open(sys.argv[1]))['n_patches'])" "$d/dataset.json")
-    printf '%s\t%s\t%.1f\t%s\t%s\n' "$ref" "$preset" "$(echo "$t1 - $t0" | bc)" "$n" \
-        "$([ "${FRESH_JIT:-0}" = 1 ] && echo fresh-jit-cache || echo warm-jit-cache)" | tee -a "$out/results.tsv"
+shards() {  # --set override of a preset's shard count (empty: the full preset)
+  case "$1" in paper-train) n=${TRAIN_SHARDS:-};; *) n=${VAL_SHARDS:-};; esac
+  [ -n "$n" ] && echo "--set dataset.n_shards=$n" || true
+}
+
+for round in $(seq 1 "${ROUNDS:-1}"); do
+  order="$oldsrc $newsrc"
+  [ $((round % 2)) = 0 ] && order="$newsrc $oldsrc"
+  for s in $order; do
+    ref=$(git -C "$s" rev-parse --short HEAD)
+    for preset in paper-train paper-val; do
+      d="$out/$ref/$preset"
+      rm -rf "$d"
+      home=$HOME
+      [ "${FRESH_JIT:-0}" = 1 ] && home=$(mktemp -d)
+      t0=$(date +%s.%N)
+      # user + sys CPU seconds of the render and every worker it waited for (bash `times`)
+      cpu=$(cd "$s" && HOME="$home" PYTHONPATH="$s" bash -c '"$0" -m msps_render.cli render "$1" --out "$2" \
+          --workers "$3" $4 > "$5" 2>&1; times' "$py" "$preset" "$d" "$workers" "$(shards "$preset")" \
+          "$out/$ref-$preset.log" | awk 'NR==2 {print}')
+      t1=$(date +%s.%N)
+      cpus=$(echo "$cpu" | awk '{ s = 0; for (i = 1; i <= 2; i++) { split($i, a, "m"); sub("s", "", a[2]); s += a[1] * 60 + a[2] } printf "%.1f", s }')
+      n=$("$py" -c "import json,sys; print(json.load(open(sys.argv[1]))['n_patches'])" "$d/dataset.json")
+      printf '%s\t%s\t%.1f\t%s\t%s\t%s\t%s\n' "$ref" "$preset" "$(echo "$t1 - $t0" | bc)" "$n" \
+          "$([ "${FRESH_JIT:-0}" = 1 ] && echo fresh-jit-cache || echo warm-jit-cache)" "$cpus" "$round" \
+          | tee -a "$out/results.tsv"
+    done
   done
 done

@@ -111,7 +111,8 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
         if timer is not None:
             timer.end_frame()
     P = d.patches.size
-    tw = time.perf_counter()
+    clock = timer.clock if timer is not None else time.perf_counter
+    tw = clock()
     cat = Patches.concat(pats, P)
     attrs = {"toolkit_version": msps_render.__version__, "mitsuba_version": mitsuba_info()["mitsuba"],
              "variant": ws.variant, "config_hash": _hash(task.config_json), "seed": task.seed,
@@ -121,7 +122,7 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
                                          attrs), d.storage.compression, d.storage.image_dtype,
                        d.storage.normal_dtype)
     if timer is not None and frames:
-        share = (time.perf_counter() - tw) / len(frames)
+        share = (clock() - tw) / len(frames)
         for f in timer.frames[-len(frames):]:
             f["write"] = f.get("write", 0.0) + share
     info.update(condition=task.condition, render_seconds=render_s, wall_seconds=time.perf_counter() - t0,

@@ -24,23 +24,7 @@ def ground_truth(mi, scene, spec: SceneSpec):
     names = [s.id() for s in shapes]
     part_of = [int(n[4:]) if n.startswith("part") else -1 for n in names]
     if dr.is_jit_v(mi.Float):
-        idx = dr.arange(mi.UInt32, W * H)
-        x, y = idx % W, idx // W
-        pos = mi.Point2f((mi.Float(x) + 0.5) / W, (mi.Float(y) + 0.5) / H)
-        ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
-        si = scene.ray_intersect(ray)
-        valid = si.is_valid()
-        n = si.sh_frame.n
-        n = dr.select(dr.dot(n, ray.d) > 0, -n, n)  # face the camera
-        ids = dr.reinterpret_array(mi.UInt32, si.shape)
-        shape_ids = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in shapes]
-        mask = np.array(valid, dtype=bool)
-        normal = np.stack([np.array(n.x), np.array(n.y), np.array(n.z)], -1)
-        depth = np.array(spec.camera.distance - si.p.z, dtype=np.float32)
-        sid = np.array(ids)
-        part = np.full(W * H, -1, dtype=np.int8)
-        for s_id, p in zip(shape_ids, part_of):
-            part[(sid == s_id) & mask] = p
+        mask, normal, depth, part, _, _ = _cast_jit(mi, scene, spec, shapes, part_of, appearance=False)
     else:  # scalar variants: one ray at a time (slow but only a fallback)
         mask = np.zeros(W * H, bool)
         normal = np.zeros((W * H, 3))
@@ -58,12 +42,77 @@ def ground_truth(mi, scene, spec: SceneSpec):
                 normal[i] = (n.x, n.y, n.z)
                 depth[i] = spec.camera.distance - si.p.z
                 part[i] = part_of[names.index(si.shape.id())]
+    return _finish_geometry(normal, mask, depth, part, W, H)
+
+
+def _finish_geometry(normal, mask, depth, part, W: int, H: int):
     normal = normal.astype(np.float64)
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     normal[~mask] = 0.0
     depth[~mask] = 0.0
     return (normal.reshape(H, W, 3).astype(np.float32), mask.reshape(H, W), depth.reshape(H, W),
             part.reshape(H, W))
+
+
+def _cast_jit(mi, scene, spec: SceneSpec, shapes, part_of, appearance: bool):
+    """One ray per pixel centre, every output evaluated in ONE kernel launch (`dr.eval` of all of
+    them together): converting them to numpy one at a time re-traced the rays once per array.
+    Returns flat numpy arrays (mask, normal, depth, part, albedo, weight); the last two None
+    unless `appearance`."""
+    import drjit as dr
+
+    from msps_render.render.textures import ALBEDO, WEIGHT
+
+    W, H = spec.camera.width, spec.camera.height
+    sensor = scene.sensors()[0]
+    idx = dr.arange(mi.UInt32, W * H)
+    x, y = idx % W, idx // W
+    pos = mi.Point2f((mi.Float(x) + 0.5) / W, (mi.Float(y) + 0.5) / H)
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
+    si = scene.ray_intersect(ray)
+    valid = si.is_valid()
+    n = si.sh_frame.n
+    n = dr.select(dr.dot(n, ray.d) > 0, -n, n)  # face the camera
+    ids = dr.reinterpret_array(mi.UInt32, si.shape)
+    z = spec.camera.distance - si.p.z
+    outs = [valid, n, z, ids]
+    if appearance:
+        outs += [si.shape.eval_attribute_3(ALBEDO, si, valid), si.shape.eval_attribute_1(WEIGHT, si, valid)]
+    dr.eval(*outs)
+    shape_ids = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in shapes]
+    mask = np.array(valid, dtype=bool)
+    normal = np.stack([np.array(n.x), np.array(n.y), np.array(n.z)], -1)
+    depth = np.array(z, dtype=np.float32)
+    sid = np.array(ids)
+    part = np.full(W * H, -1, dtype=np.int8)
+    for s_id, p in zip(shape_ids, part_of):
+        part[(sid == s_id) & mask] = p
+    albedo = weight = None
+    if appearance:
+        a, w = outs[4], outs[5]
+        albedo = np.stack([np.array(a.x), np.array(a.y), np.array(a.z)], -1)
+        weight = np.array(w)
+        albedo[~mask] = 0.0
+        weight[~mask] = 0.0
+    return mask, normal, depth, part, albedo, weight
+
+
+def frame_truth(mi, scene, spec: SceneSpec):
+    """`ground_truth` and `appearance_truth` of a loaded scene from one shared ray cast (JIT
+    variants; the same values as calling both): (normal, mask, depth, part, albedo, blend)."""
+    import drjit as dr
+
+    from msps_render.render.textures import ALBEDO
+
+    shapes = scene.shapes()
+    parts = [s for s in shapes if s.id().startswith("part")]
+    if not dr.is_jit_v(mi.Float) or not parts or not all(s.has_attribute(ALBEDO) for s in parts):
+        return (*ground_truth(mi, scene, spec), *appearance_truth(mi, scene, spec))
+    W, H = spec.camera.width, spec.camera.height
+    part_of = [int(s.id()[4:]) if s.id().startswith("part") else -1 for s in shapes]
+    mask, normal, depth, part, albedo, weight = _cast_jit(mi, scene, spec, shapes, part_of, appearance=True)
+    return (*_finish_geometry(normal, mask, depth, part, W, H),
+            albedo.reshape(H, W, 3).astype(np.float32), weight.reshape(H, W).astype(np.float32))
 
 
 def appearance_truth(mi, scene, spec: SceneSpec) -> tuple[np.ndarray, np.ndarray]:

@@ -17,7 +17,7 @@ import numpy as np
 
 from msps_render.frame import Frame
 from msps_render.render.emitters import render_emitters_one_pass, render_emitters_separately
-from msps_render.render.ground_truth import appearance_truth, ground_truth
+from msps_render.render.ground_truth import frame_truth
 from msps_render.render.scene_dict import build_scene_dict, emitter_ids, one_pass
 from msps_render.render.spectral import render_spectral_frame
 from msps_render.render.variant import activate, resolve_variant
@@ -38,8 +38,7 @@ def render_frame(spec: SceneSpec, variant: str | None = None, threads: int | Non
     with stage(timer, "scene load"):
         scene = mi.load_dict(d)
     with stage(timer, "ground truth"):
-        normal, mask, depth, part = ground_truth(mi, scene, spec)
-        albedo, blend = appearance_truth(mi, scene, spec)
+        normal, mask, depth, part, albedo, blend = frame_truth(mi, scene, spec)
     with stage(timer, "render"):
         if one_pass(spec, mi):
             images = render_emitters_one_pass(mi, scene, emitter_ids(spec), spec.integrator.spp,

@@ -41,6 +41,7 @@ def real_sh_basis(dirs: np.ndarray, lmax: int, lmin: int = 1) -> np.ndarray:
         for l in range(m + 2, lmax + 1):
             P[l, m] = ((2 * l - 1) * ct * P[l - 1, m] - (l + m - 1) * P[l - 2, m]) / (l - m)
     cols = []
+    trig: dict[int, np.ndarray] = {}  # cos(a phi) for m = a > 0, sin(a phi) for m = -a: once per m
     for l in range(lmin, lmax + 1):
         for m in range(-l, l + 1):
             a = abs(m)
@@ -48,8 +49,9 @@ def real_sh_basis(dirs: np.ndarray, lmax: int, lmin: int = 1) -> np.ndarray:
             if m == 0:
                 cols.append(norm * P[l, 0])
             else:
-                trig = np.cos(a * phi) if m > 0 else np.sin(a * phi)
-                cols.append(sqrt(2) * (-1) ** m * norm * P[l, a] * trig)
+                if m not in trig:
+                    trig[m] = np.cos(a * phi) if m > 0 else np.sin(a * phi)
+                cols.append(sqrt(2) * (-1) ** m * norm * P[l, a] * trig[m])
     return np.stack(cols, axis=1)
 
 
@@ -89,8 +91,17 @@ def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     truth must describe exactly the surface Mitsuba shades.
     """
     fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = 2*area
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
+    if fn.dtype == np.float64:
+        # per coordinate one float64 `bincount` over the corners in the order (corner 0 of every
+        # face, then corner 1, then corner 2): the same additions in the same order as `np.add.at`
+        # corner by corner, so bit-identical, and ~3x faster
+        idx = np.asarray(f, dtype=np.intp).T.reshape(-1)
+        n = np.empty_like(v)
+        for c in range(v.shape[1]):
+            n[:, c] = np.bincount(idx, weights=np.tile(fn[:, c], 3), minlength=len(v))
+    else:  # bincount sums in float64: other dtypes keep their own accumulation
+        n = np.zeros_like(v)
+        for k in range(3):
+            np.add.at(n, f[:, k], fn)
     ln = np.linalg.norm(n, axis=1, keepdims=True)
     return n / np.where(ln > 0, ln, 1.0)

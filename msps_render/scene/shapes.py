@@ -13,6 +13,7 @@ self-intersect; amplitudes decay with l so it stays smooth.
 """
 from __future__ import annotations
 
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -133,6 +134,25 @@ def random_rotation(rng: np.random.Generator) -> tuple:
 
 def build_mesh(shape: ShapeSpec) -> TriMesh:
     """ShapeSpec -> triangle mesh in the camera/world frame, inside radius `shape.radius`."""
+    if shape.kind == "sphere":
+        raise ValueError("the analytic sphere has no mesh; the renderer uses Mitsuba's sphere")
+    if shape.kind in ("blobby", "primitive", "procedural"):  # pure functions of their parameters
+        v, f, uv = _canonical_cached(shape.kind, shape.name, tuple(shape.sh_coeffs), shape.subdivisions,
+                                     tuple(shape.params.items()), float(shape.radius))
+    else:
+        v, f, uv = _canonical(shape)
+    R = np.asarray(shape.rotation, dtype=np.float64)
+    v = v @ R.T
+    if shape.kind == "procedural":  # keep creases sharp: split vertices across sharp edges
+        v, f, n = crease_normals(v, f)
+    else:
+        n = vertex_normals(v, f)
+    return TriMesh(v.astype(np.float32), f.astype(np.uint32), n.astype(np.float32), uv)
+
+
+def _canonical(shape: ShapeSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The mesh before its rotation: built, degenerate faces dropped, unused vertices removed,
+    normalised into radius `shape.radius` (float64 vertices, int64 faces, float32 UVs or None)."""
     uv = None
     if shape.kind == "blobby":
         v, f = blobby_mesh(tuple(shape.sh_coeffs), shape.subdivisions)
@@ -140,10 +160,8 @@ def build_mesh(shape: ShapeSpec) -> TriMesh:
         v, f, uv = load_mesh_file_uv(shape.path)
     elif shape.kind == "primitive":
         v, f = orient_outward(*build_primitive(shape.name, dict(shape.params)))
-    elif shape.kind == "procedural":
-        v, f = procedural_mesh(shape.name, dict(shape.params))
     else:
-        raise ValueError("the analytic sphere has no mesh; the renderer uses Mitsuba's sphere")
+        v, f = procedural_mesh(shape.name, dict(shape.params))
     f = clean_faces(v, f)
     if len(f) == 0:
         raise InputError(shape.path or shape.name, "mesh has only degenerate faces")
@@ -152,13 +170,34 @@ def build_mesh(shape: ShapeSpec) -> TriMesh:
     remap[used] = np.arange(len(used))
     v, f = v[used], remap[f]
     uv = uv[used].astype(np.float32) if uv is not None else None
-    R = np.asarray(shape.rotation, dtype=np.float64)
-    v = normalise(v, shape.radius) @ R.T
-    if shape.kind == "procedural":  # keep creases sharp: split vertices across sharp edges
-        v, f, n = crease_normals(v, f)
-    else:
-        n = vertex_normals(v, f)
-    return TriMesh(v.astype(np.float32), f.astype(np.uint32), n.astype(np.float32), uv)
+    return normalise(v, shape.radius), f, uv
+
+
+CANONICAL_CACHE_BYTES = 32 << 20  # canonical meshes kept per process (a paper-train blob is 0.7 MB)
+_CANONICAL: OrderedDict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = OrderedDict()
+
+
+def _canonical_cached(kind: str, name: str, sh_coeffs: tuple, subdivisions: int, params: tuple,
+                      radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """`_canonical` of a generated shape, kept per process: a corpus draws its objects from a small
+    pool (paper-train: 9 blobs) and only the rotation changes from frame to frame, so the mesh
+    before the rotation is built once per shape (the same arrays as building it again).  Least
+    recently used meshes are dropped beyond `CANONICAL_CACHE_BYTES` (flat worker memory); mesh
+    files are not cached (they may change on disk)."""
+    key = (kind, name, sh_coeffs, subdivisions, params, radius)
+    hit = _CANONICAL.get(key)
+    if hit is not None:
+        _CANONICAL.move_to_end(key)
+        return hit
+    shape = ShapeSpec(kind=kind, name=name, sh_coeffs=sh_coeffs, subdivisions=subdivisions,
+                      params=dict(params), radius=radius)
+    v, f, uv = _canonical(shape)
+    for a in (v, f):
+        a.setflags(write=False)
+    _CANONICAL[key] = (v, f, uv)
+    while len(_CANONICAL) > 1 and sum(a.nbytes for m in _CANONICAL.values() for a in m[:2]) > CANONICAL_CACHE_BYTES:
+        _CANONICAL.popitem(last=False)
+    return v, f, uv
 
 
 # ------------------------------------------------------------------- parts
@@ -167,7 +206,10 @@ def face_parts(mesh: TriMesh, split: SplitSpec) -> np.ndarray:
     F = len(mesh.faces)
     if split.kind == "none" or split.n_parts == 1:
         return np.zeros(F, dtype=np.int64)
-    c = mesh.vertices[mesh.faces].mean(axis=1).astype(np.float64)
+    # face centroids: the float32 sum of the three corners in order, divided by 3 -- the same
+    # operations `mesh.vertices[mesh.faces].mean(axis=1)` performs, without the (F, 3, 3) copy
+    v, f = mesh.vertices, mesh.faces
+    c = ((v[f[:, 0]] + v[f[:, 1]] + v[f[:, 2]]) / v.dtype.type(3)).astype(np.float64)
     if split.kind == "planes":
         nrm = np.asarray(split.normals, dtype=np.float64)
         off = np.asarray(split.offsets, dtype=np.float64)
