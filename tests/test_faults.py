@@ -722,3 +722,25 @@ def test_ctrl_c_while_the_commands_import_is_one_line_and_130():
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert r.returncode == 128 + signal.SIGINT, r.stderr[-2000:]
     assert lines == ["msps: interrupted while starting; nothing was written"], r.stderr[-2000:]
+
+
+def test_ctrl_c_while_render_imports_mitsuba_is_one_line_and_130(tmp_path):
+    """The same inside `msps render` while Mitsuba/drjit load (seconds): without the guard the interrupt
+    inside drjit's extension import surfaced as a NameError traceback and exit 1."""
+    script = textwrap.dedent(f"""
+        import importlib.abc, os, signal, sys
+        class Hook(importlib.abc.MetaPathFinder):
+            def find_spec(self, name, path, target=None):
+                if name == "drjit":
+                    os.kill(os.getpid(), signal.SIGINT)
+                return None
+        sys.meta_path.insert(0, Hook())
+        sys.argv = ["msps", "render", "demo", "--out", {str(tmp_path / "out")!r}, "--quiet"]
+        from msps_render.cli import app
+        app(prog_name="msps")
+    """)
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 128 + signal.SIGINT, r.stderr[-2000:]
+    assert lines == ["msps: interrupted while starting; nothing was written"], r.stderr[-2000:]
+    assert not (tmp_path / "out").exists()

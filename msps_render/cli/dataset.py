@@ -35,6 +35,10 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
                sbatch: List[str] = typer.Option([], "--sbatch", help="Slurm: extra sbatch option (repeatable), "
                                                                       "e.g. --sbatch=--qos=low")):
     """Render a dataset of HDF5 patch shards."""
+    from msps_render.cli._signals import nothing_written_yet
+
+    with nothing_written_yet():  # Mitsuba's import takes seconds; a Ctrl-C inside it is one line, exit 130
+        import mitsuba  # noqa: F401
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.run import config_difference, render_dataset, resume_config
     from msps_render.pipeline.slurm import with_flags
