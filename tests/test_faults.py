@@ -702,45 +702,39 @@ def test_worker_killed_mid_run_is_one_line_and_keeps_finished_shards(tmp_path):
     assert sorted(p.name for p in (out / "shards").iterdir()) == sorted(m["shards"]) and m["shards"]
 
 
-def test_ctrl_c_while_the_commands_import_is_one_line_and_130():
-    """A Ctrl-C that lands while `msps` is still importing its commands (over a second on a loaded machine)
-    ends with one line and 128 + SIGINT, not a KeyboardInterrupt traceback through half-imported modules.
-    An import hook sends the signal from inside the import of the last command module, deterministically."""
-    script = textwrap.dedent("""
+def _interrupt_at_import(module: str, argv: list[str]) -> subprocess.CompletedProcess:
+    """Run `msps ARGV` in a child that sends itself SIGINT when `module` is first imported (an import
+    hook: deterministic, unlike a timed signal)."""
+    script = textwrap.dedent(f"""
         import importlib.abc, os, signal, sys
         class Hook(importlib.abc.MetaPathFinder):
             def find_spec(self, name, path, target=None):
-                if name == "msps_render.cli.workflows":
+                if name == {module!r}:
                     os.kill(os.getpid(), signal.SIGINT)
                 return None
         sys.meta_path.insert(0, Hook())
-        sys.argv = ["msps", "--help"]
+        sys.argv = {["msps", *argv]!r}
         from msps_render.cli import app
         app(prog_name="msps")
     """)
-    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+
+
+def _assert_interrupted_while_starting(r: subprocess.CompletedProcess) -> None:
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert r.returncode == 128 + signal.SIGINT, r.stderr[-2000:]
     assert lines == ["msps: interrupted while starting; nothing was written"], r.stderr[-2000:]
+
+
+def test_ctrl_c_while_the_commands_import_is_one_line_and_130():
+    """A Ctrl-C that lands while `msps` is still importing its commands (over a second on a loaded machine)
+    ends with one line and 128 + SIGINT, not a KeyboardInterrupt traceback through half-imported modules."""
+    _assert_interrupted_while_starting(_interrupt_at_import("msps_render.cli.workflows", ["--help"]))
 
 
 def test_ctrl_c_while_render_imports_mitsuba_is_one_line_and_130(tmp_path):
     """The same inside `msps render` while Mitsuba/drjit load (seconds): without the guard the interrupt
     inside drjit's extension import surfaced as a NameError traceback and exit 1."""
-    script = textwrap.dedent(f"""
-        import importlib.abc, os, signal, sys
-        class Hook(importlib.abc.MetaPathFinder):
-            def find_spec(self, name, path, target=None):
-                if name == "drjit":
-                    os.kill(os.getpid(), signal.SIGINT)
-                return None
-        sys.meta_path.insert(0, Hook())
-        sys.argv = ["msps", "render", "demo", "--out", {str(tmp_path / "out")!r}, "--quiet"]
-        from msps_render.cli import app
-        app(prog_name="msps")
-    """)
-    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
-    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert r.returncode == 128 + signal.SIGINT, r.stderr[-2000:]
-    assert lines == ["msps: interrupted while starting; nothing was written"], r.stderr[-2000:]
-    assert not (tmp_path / "out").exists()
+    out = tmp_path / "out"
+    _assert_interrupted_while_starting(_interrupt_at_import("drjit", ["render", "demo", "--out", str(out), "--quiet"]))
+    assert not out.exists()
