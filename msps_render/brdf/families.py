@@ -15,16 +15,19 @@ import numpy as np
 from msps_render.errors import closest
 
 
-GAMUTS = ("moderate", "full")  # albedo colour distributions (docs/appearance.md, plotted there)
+GAMUTS = ("moderate", "full", "mixed")  # albedo colour distributions (docs/appearance.md, plotted there)
 
 
 def _albedo(rng: np.random.Generator, lo: float = 0.15, hi: float = 0.9,
             gamut: str = "moderate") -> tuple[float, float, float]:
     """An albedo colour.  `moderate` (the corpora up to v0.4): brightness x chroma with every
     channel >= half the largest.  `full`: hue uniform, saturation up to 0.9 (smallest/largest
-    channel down to 0.1) and brightness down to lo/3, so saturated and dark colours both occur."""
+    channel down to 0.1) and brightness down to lo/3, so saturated and dark colours both occur.
+    `mixed`: a third each of achromatic, moderate and full (a grey share inside a colourful corpus)."""
     if gamut == "full":
         return full_gamut_albedo(rng, lo, hi)
+    if gamut == "mixed":
+        return mixed_albedo(rng, lo, hi)
     chroma = rng.dirichlet([2.0, 2.0, 2.0]) * 3.0
     b = rng.uniform(lo, hi)
     rgb = np.clip(b * (0.5 + 0.5 * chroma / chroma.max()), 0.02, 0.95)
@@ -41,6 +44,18 @@ def full_gamut_albedo(rng: np.random.Generator, lo: float = 0.15, hi: float = 0.
     v = lo / 3.0 + (hi - lo / 3.0) * b ** 0.8
     rgb = np.clip(colorsys.hsv_to_rgb(h, s, v), 0.005, 0.95)
     return tuple(float(x) for x in rgb)
+
+
+def mixed_albedo(rng: np.random.Generator, lo: float = 0.15, hi: float = 0.9) -> tuple[float, float, float]:
+    """One third achromatic (equal channels, brightness uniform in [lo, hi]), one third
+    `moderate`, one third `full`.  Why: a net fine-tuned on `full` alone stops defaulting to
+    "achromatic" where a pixel's chroma could be shading, and regresses on grey objects; the
+    grey share keeps that prior inside the same frames (docs/appearance.md)."""
+    pick = rng.uniform()
+    if pick < 1.0 / 3.0:
+        g = float(rng.uniform(lo, hi))
+        return (g, g, g)
+    return _albedo(rng, lo, hi, "moderate" if pick < 2.0 / 3.0 else "full")
 
 
 def _diffuse(rng, gamut="moderate"):

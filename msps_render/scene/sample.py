@@ -104,7 +104,8 @@ class MaterialsConfig(StrictModel):
                                                                    "material parts")
     albedo: Literal[GAMUTS] = Field("moderate", description="albedo colours of analytic families: moderate "
                                                             "(every channel >= half the largest; corpora up to "
-                                                            "v0.4) or full (saturated and dark; "
+                                                            "v0.4), full (saturated and dark) or mixed (a "
+                                                            "third each achromatic/moderate/full; "
                                                             "docs/appearance.md)")
     texture: TextureConfig = Field(default_factory=TextureConfig,
                                    description="spatially varying appearance (docs/appearance.md)")
