@@ -109,6 +109,24 @@ def test_full_gamut_reaches_saturated_and_dark_colours_moderate_does_not():
     assert counts.min() > 0.5 * counts.mean()  # every hue sextant is covered
 
 
+def test_mixed_gamut_is_a_third_each_achromatic_moderate_full():
+    """`mixed` (train-colour-mixed): one third exactly grey, the rest split between the moderate
+    distribution (ratio >= 0.49) and the full one (ratios down to 0.1).  Binomial sd over 6,000
+    draws is 0.6 %, so +-3 % is > 4 sd."""
+    from msps_render.brdf.families import _albedo
+
+    rng = np.random.default_rng(3)
+    mixed = np.array([_albedo(rng, gamut="mixed") for _ in range(6000)])
+    ratio = mixed.min(1) / mixed.max(1)
+    grey = ratio == 1.0
+    assert abs(grey.mean() - 1 / 3) < 0.03
+    # full draws with ratio 1 - s < 0.49: s = 0.9 u^0.6 > 0.51 <=> u > 0.388, P = 0.61
+    assert abs((ratio < 0.49).mean() - 0.61 / 3) < 0.03
+    assert ratio.min() < 0.11
+    g = mixed[grey, 0]
+    assert 0.15 <= g.min() < 0.17 and 0.88 < g.max() <= 0.9  # grey brightness uniform in [lo, hi]
+
+
 def test_random_crosstalk_is_dominant_asymmetric_and_normalised():
     from msps_render.calibration import crosstalk_problem
     from msps_render.scene.lights import random_crosstalk
