@@ -50,3 +50,22 @@ for set in unseen-robust-env unseen-rig-crosstalk unseen-rig-jitter; do  # all m
 done
 [ -f "$RUNS/real/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real" \
   --checkpoint new="$NEW" --checkpoint v0.4=models/dualcue-cpu-v0.4.pt
+
+# 4. stage 6d: 6a's diet with train-colour (full gamut, random rig) replaced by train-colour-mixed (a third each
+#    achromatic / moderate / full albedo, the paper's rig), from v0.4; 10,000 steps or 75 minutes
+$MSPS render train-colour-mixed --out "$DATA/train-colour-mixed" --workers 2 $R
+resume=""; [ -f "$RUNS/colour-mixed/last.pt" ] && resume="--resume"
+$MSPS train cpu --threads 2 --data "$DATA/train-colour-mixed" --data "$DATA/train-colour-env" --data "$DATA/train-grey-30" \
+  --data "$DATA/blobs-48" --val "$DATA/val" --init models/dualcue-cpu-v0.4.pt --out "$RUNS/colour-mixed" $resume \
+  --set train.freeze_bn=true --set train.shuffle_window=0 --set train.cache=true --set train.max_minutes=75 \
+  --set train.max_steps=10000 --set train.lr=2e-4 --set train.val_every=500 --set train.val_max_patches=1500
+D="$RUNS/colour-mixed/last.pt"
+[ -f "$RUNS/report-6d/report.json" ] || $PY benchmarks/unseen_report.py --data "$DATA/unseen-test-grey" \
+  --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test" --data "$DATA/unseen-test-texture" \
+  --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" --model 6d="$D" --out "$RUNS/report-6d"
+[ -f "$RUNS/real-6d/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-6d" \
+  --checkpoint 6d="$D" --checkpoint 6a="$NEW" --checkpoint v0.4=models/dualcue-cpu-v0.4.pt
+for set in unseen-robust-env unseen-rig-crosstalk unseen-rig-jitter; do
+  [ -f "$RUNS/eval-6d-$set/metrics.json" ] || $MSPS eval --data "$DATA/$set" --checkpoint 6d="$D" \
+    --checkpoint 6a="$NEW" --method lambertian --out "$RUNS/eval-6d-$set"
+done
