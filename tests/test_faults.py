@@ -707,6 +707,9 @@ def _interrupt_at_import(module: str, argv: list[str]) -> subprocess.CompletedPr
     hook: deterministic, unlike a timed signal)."""
     script = textwrap.dedent(f"""
         import importlib.abc, os, signal, sys
+        # a harness started in the background (`cmd &` without job control) passes SIGINT ignored,
+        # and Python then installs no KeyboardInterrupt handler: restore the terminal's default
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         class Hook(importlib.abc.MetaPathFinder):
             def find_spec(self, name, path, target=None):
                 if name == {module!r}:
