@@ -419,3 +419,53 @@ def test_short_run_validates_often_enough_for_a_curve(tiny_dataset, tmp_path):
     assert c.seconds == 600.0 / VAL_POINTS and not c.due(7, 29.0) and c.due(7, 30.0)
     c.done(30.0, 50.0)  # a 20 s validation: wait 4 x as long before the next time-based one
     assert not c.due(8, 100.0) and c.due(8, 130.0) and c.due(500, 51.0)
+
+
+def test_chroma_cue_cancels_a_uniform_albedo_colour():
+    """The chroma cue is x_c / mean(x_c): a uniform albedo colour rho (a per-channel factor) cancels,
+    so a grey and a coloured patch of one shape give the same cue (to float32 rounding), while the
+    plain, exposure-normalised observation still differs by the colour."""
+    from msps_render.models.net import chroma_normalise, normalise_observation
+
+    g = torch.Generator().manual_seed(3)
+    shading = torch.rand(2, 3, 40, 40, generator=g)
+    shading[:, :, :6] = 0  # background rows
+    mask = (shading.sum(1, keepdim=True) > 0).float()
+    rho = torch.tensor([0.9, 0.3, 0.1]).view(1, 3, 1, 1)  # channel ratio 0.11, the full gamut's edge
+    grey, colour = normalise_observation(0.5 * shading, mask), normalise_observation(rho * shading, mask)
+    assert (grey - colour).abs().max() > 0.3
+    diff = (chroma_normalise(grey, mask) - chroma_normalise(colour, mask)).abs().max()
+    assert diff < 1e-5, diff
+    # a channel that is black on the object is bounded by the floor instead of dividing by zero
+    dark = chroma_normalise(normalise_observation(shading * torch.tensor([1.0, 1.0, 0.0]).view(1, 3, 1, 1), mask))
+    assert torch.isfinite(dark).all() and dark[:, 2].abs().max() == 0
+
+
+def test_chroma_cue_warm_start_reproduces_the_old_network_then_learns(tiny_dataset, tmp_path):
+    """`--init` of a net without the chroma cue into one with it: the new input weights start at zero, so
+    the widened net's output equals the old one exactly; a short fine-tune moves them; any other change
+    of network is still refused."""
+    from msps_render.models.net import widen_inputs
+    from msps_render.models.train import load_checkpoint, train
+
+    base = ["train.max_steps=3", "train.val_every=3", "train.batch_size=4", "train.val_max_patches=8"]
+    train(load_model_config("cpu", base), tiny_dataset, tiny_dataset, tmp_path / "a", progress=False)
+    old, _, ck = load_checkpoint(tmp_path / "a" / "last.pt")
+    wide = DualCueNet(load_model_config("cpu", ["net.chroma_cue=true"]).net_config()).eval()
+    keys = widen_inputs(wide, ck["model"])
+    assert sorted(keys) == ["pcn.obs.0.weight"] + [f"scn.branches.{i}.0.0.weight" for i in range(3)]
+    x = torch.rand(3, 3, 40, 40) * torch.tensor([1.0, 0.4, 0.15]).view(1, 3, 1, 1)
+    with torch.no_grad():
+        assert torch.equal(old(x)[0], wide(x)[0])
+    assert count_parameters(wide) == count_parameters(old) + 3 * 8 * 9 + 32 * 3
+
+    tuned = load_model_config("cpu", base + ["net.chroma_cue=true", "train.freeze_bn=true"])
+    train(tuned, tiny_dataset, tiny_dataset, tmp_path / "b", progress=False, init=tmp_path / "a" / "last.pt")
+    b, bcfg, _ = load_checkpoint(tmp_path / "b" / "last.pt")
+    assert bcfg.net.chroma_cue
+    assert b.state_dict()["pcn.obs.0.weight"][:, 3:].abs().max() > 0  # the new inputs learned
+    with pytest.raises(InputError, match="different network"):  # chroma cue *and* another width
+        train(load_model_config("cpu", base + ["net.chroma_cue=true", "net.branch=4"]), tiny_dataset,
+              tiny_dataset, tmp_path / "c", progress=False, init=tmp_path / "a" / "last.pt")
+    with pytest.raises(ValueError, match="does not widen"):
+        widen_inputs(DualCueNet(load_model_config("cpu", ["net.branch=4"]).net_config()), ck["model"])

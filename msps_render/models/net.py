@@ -28,6 +28,7 @@ class NetConfig:
     pcn_branch: int = 32  # width of each PCN input branch
     pcn: tuple[int, ...] = (64, 64, 32, 32)  # PCN FC widths after the merge
     mode: str = "dual"  # dual | scn | pcn
+    chroma_cue: bool = False  # add each channel divided by its own patch mean as a second input
 
     def __post_init__(self):
         if self.mode not in ("dual", "scn", "pcn"):
@@ -65,7 +66,8 @@ class SCN(nn.Module):
     def __init__(self, cfg: NetConfig):
         super().__init__()
         b = cfg.branch
-        self.branches = nn.ModuleList([nn.Sequential(_conv(1, b), _conv(b, b)) for _ in range(3)])
+        self.per_branch = 2 if cfg.chroma_cue else 1  # inputs per colour branch: [x_c] or [x_c, x_c / mean(x_c)]
+        self.branches = nn.ModuleList([nn.Sequential(_conv(self.per_branch, b), _conv(b, b)) for _ in range(3)])
         self.igc = IGCBlock(3 * b, 3)
         c0, c1, c2, c3 = cfg.unet
         self.enc0 = _conv(3 * b, c0)
@@ -81,7 +83,8 @@ class SCN(nn.Module):
         self.head = nn.Sequential(nn.Conv2d(c0, c0, 1), nn.ReLU(inplace=True), nn.Conv2d(c0, 3, 1))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        f = torch.cat([br(x[:, i:i + 1]) for i, br in enumerate(self.branches)], 1)
+        """`x`: (B, 3 * per_branch, H, W), channel-major ([r, g, b] or [r, g, b, r', g', b'])."""
+        f = torch.cat([br(x[:, i::3]) for i, br in enumerate(self.branches)], 1)
         e0 = self.enc0(self.igc(f))
         e1 = self.enc1(self.down1(e0))
         e2 = self.enc2(self.down2(e1))
@@ -99,7 +102,7 @@ class PCN(nn.Module):
         super().__init__()
         w = cfg.pcn_branch
         self.with_normal = with_normal
-        self.obs = nn.Sequential(nn.Conv2d(3, w, 1), nn.ReLU(inplace=True))
+        self.obs = nn.Sequential(nn.Conv2d(6 if cfg.chroma_cue else 3, w, 1), nn.ReLU(inplace=True))
         self.nrm = nn.Sequential(nn.Conv2d(3, w, 1), nn.ReLU(inplace=True)) if with_normal else None
         layers, cin = [], w * (2 if with_normal else 1)
         for cout in cfg.pcn:
@@ -124,6 +127,20 @@ def normalise_observation(x: torch.Tensor, mask: torch.Tensor | None = None) -> 
     return x / s.clamp_min(1e-6)
 
 
+def chroma_normalise(x: torch.Tensor, mask: torch.Tensor | None = None, floor: float = 0.02) -> torch.Tensor:
+    """Divide each channel by its own mean over the patch's object pixels.
+
+    Why: with a uniform albedo, x_c = rho_c * shading_c, so x_c / mean(x_c) no longer depends
+    on rho_c -- a grey and a coloured object with the same shape give the same cue, which is
+    exactly the ambiguity a single multiplexed image has.  Applied after
+    `normalise_observation`, whose output has mean 1, so `floor` (a channel at 2 % of the
+    mean) bounds the gain of a nearly black channel."""
+    if mask is None:
+        mask = (x.sum(1, keepdim=True) > 0).float()
+    m = (x * mask).sum((2, 3), keepdim=True) / mask.sum((2, 3), keepdim=True).clamp_min(1.0)
+    return x / m.clamp_min(floor)
+
+
 class DualCueNet(nn.Module):
     """`forward(image, mask)` -> (final normal, coarse normal or None), both (B, 3, H, W)."""
 
@@ -139,10 +156,36 @@ class DualCueNet(nn.Module):
         if image.shape[-1] % 8 or image.shape[-2] % 8:
             raise ValueError(f"height and width must be multiples of 8 (U-Net), got {tuple(image.shape[-2:])}")
         x = normalise_observation(image, mask)
+        if self.cfg.chroma_cue:
+            x = torch.cat([x, chroma_normalise(x, mask)], 1)
         coarse = self.scn(x) if self.scn is not None else None
         if self.pcn is None:
             return coarse, coarse
         return self.pcn(x, coarse), coarse
+
+
+def widen_inputs(model: nn.Module, state: dict[str, torch.Tensor]) -> list[str]:
+    """Load `state` from a network whose first layers take fewer input channels (no chroma cue)
+    into `model` (with it): old weights fill the leading input slices, the new inputs start at
+    zero, so the widened net computes exactly what the old one did until training moves them.
+    Returns the widened keys; any other shape difference is an error."""
+    own = model.state_dict()
+    if set(own) != set(state):
+        raise ValueError("the two networks have different layers")
+    widened = []
+    for k, v in state.items():
+        if own[k].shape == v.shape:
+            own[k] = v.clone()
+        elif (v.ndim == 4 and own[k].ndim == 4 and own[k].shape[0] == v.shape[0]
+              and own[k].shape[2:] == v.shape[2:] and own[k].shape[1] > v.shape[1]):
+            w = torch.zeros_like(own[k])
+            w[:, :v.shape[1]] = v
+            own[k] = w
+            widened.append(k)
+        else:
+            raise ValueError(f"{k}: shape {tuple(v.shape)} does not widen to {tuple(own[k].shape)}")
+    model.load_state_dict(own)
+    return widened
 
 
 def count_parameters(model: nn.Module) -> int:

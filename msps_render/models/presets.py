@@ -18,6 +18,8 @@ class NetSection(StrictModel):
     pcn_branch: int = Field(32, ge=1, description="width of each PCN input branch")
     pcn: tuple[int, ...] = Field((64, 64, 32, 32), description="PCN per-pixel layer widths after the merge")
     mode: Literal["dual", "scn", "pcn"] = Field("dual", description="both cues (dual) or one network alone")
+    chroma_cue: bool = Field(False, description="also feed each colour channel divided by its own patch mean "
+                                                "(an albedo-colour-invariant cue; docs/reproducing.md stage 6e)")
 
 
 class TrainSection(StrictModel):
@@ -56,7 +58,8 @@ class ModelConfig(StrictModel):
         from msps_render.models.net import NetConfig
 
         n = self.net
-        return NetConfig(branch=n.branch, unet=tuple(n.unet), pcn_branch=n.pcn_branch, pcn=tuple(n.pcn), mode=n.mode)
+        return NetConfig(branch=n.branch, unet=tuple(n.unet), pcn_branch=n.pcn_branch, pcn=tuple(n.pcn), mode=n.mode,
+                         chroma_cue=n.chroma_cue)
 
 
 def load_model_config(path_or_name: str | Path, overrides: list[str] = ()) -> ModelConfig:

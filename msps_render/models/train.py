@@ -35,7 +35,7 @@ from msps_render.errors import InputError, not_a_dataset
 from msps_render.models.checkpoint import load_checkpoint, save_checkpoint
 from msps_render.models.losses import total_loss
 from msps_render.models.metrics import angular_error
-from msps_render.models.net import DualCueNet, count_parameters
+from msps_render.models.net import DualCueNet, count_parameters, widen_inputs
 from msps_render.models.presets import ModelConfig
 
 
@@ -152,9 +152,14 @@ def start_run(run: Run, resume: bool, init: str | Path | None) -> None:
         raise InputError(run.out, "already holds a training run; use --resume to continue it")
     elif init is not None:
         _, icfg, ick = load_checkpoint(init)
-        if icfg.net != run.cfg.net:
+        adds_chroma = (not icfg.net.chroma_cue and run.cfg.net.chroma_cue
+                       and icfg.net.model_copy(update={"chroma_cue": True}) == run.cfg.net)
+        if icfg.net != run.cfg.net and not adds_chroma:
             raise InputError(init, f"--init checkpoint has a different network ({icfg.preset}: {icfg.net})")
-        run.model.load_state_dict(ick["model"])
+        if adds_chroma:  # same net plus the chroma cue: its new inputs start at zero weight
+            widen_inputs(run.model, ick["model"])
+        else:
+            run.model.load_state_dict(ick["model"])
         run.state["init_from"] = f"{Path(init).name} sha1:{_sha1(init)[:12]}"
 
 
