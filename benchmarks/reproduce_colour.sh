@@ -20,7 +20,8 @@ $MSPS render train-colour --out "$DATA/train-colour" --workers 2 $R
 $MSPS render train-colour-env --out "$DATA/train-colour-env" --workers 2 $R
 $MSPS render val --out "$DATA/val" --workers 2 $R
 # test sets: the unseen meshes (never training shapes), held-out or analytic materials
-for set in unseen-test unseen-test-grey unseen-test-colour unseen-test-texture unseen-robust-env \
+for set in unseen-test unseen-test-grey unseen-test-colour unseen-test-texture unseen-test-smooth unseen-test-patches \
+           unseen-robust-env \
            unseen-rig-crosstalk unseen-rig-jitter; do
   $MSPS render $set --out "$DATA/$set" --workers 2 $R
 done
@@ -69,3 +70,20 @@ for set in unseen-robust-env unseen-rig-crosstalk unseen-rig-jitter; do
   [ -f "$RUNS/eval-6d-$set/metrics.json" ] || $MSPS eval --data "$DATA/$set" --checkpoint 6d="$D" \
     --checkpoint 6a="$NEW" --method lambertian --out "$RUNS/eval-6d-$set"
 done
+
+# 5. stage 6e: 6d exactly (diet, init, schedule, steps) plus the chroma cue (net.chroma_cue: each channel over its
+#    own patch mean as extra inputs, zero-initialised from v0.4's weights); rule in runs/6e-decision.txt
+resume=""; [ -f "$RUNS/chroma/last.pt" ] && resume="--resume"
+$MSPS train cpu --threads 2 --data "$DATA/train-colour-mixed" --data "$DATA/train-colour-env" --data "$DATA/train-grey-30" \
+  --data "$DATA/blobs-48" --val "$DATA/val" --init models/dualcue-cpu-v0.4.pt --out "$RUNS/chroma" $resume \
+  --set net.chroma_cue=true --set train.freeze_bn=true --set train.shuffle_window=0 --set train.cache=true \
+  --set train.max_minutes=90 --set train.max_steps=9388 --set train.lr=2e-4 --set train.val_every=500 \
+  --set train.val_max_patches=1500
+E="$RUNS/chroma/last.pt"
+[ -f "$RUNS/report-6e/report.json" ] || $PY benchmarks/unseen_report.py --data "$DATA/unseen-test-grey" \
+  --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test" --data "$DATA/unseen-test-texture" \
+  --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" --model 6e="$E" --out "$RUNS/report-6e"
+[ -f "$RUNS/real-6e/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-6e" \
+  --checkpoint 6e="$E" --checkpoint 6a=models/dualcue-cpu-colour.pt --checkpoint v0.4=models/dualcue-cpu-v0.4.pt
+[ -f "$RUNS/eval-6e-unseen-robust-env/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" \
+  --checkpoint 6e="$E" --method lambertian --out "$RUNS/eval-6e-unseen-robust-env"

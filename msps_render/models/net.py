@@ -11,6 +11,12 @@ PCN (photometric cue): a per-pixel multi-branch fully connected net on
 [observation (3), coarse normal (3)]: one branch per input, merged, then FC
 layers, L2-normalised.  Per-pixel FC layers are written as 1x1 convolutions,
 which is the same computation without reshaping to (B*H*W, 6).
+
+Chroma cue (`chroma_cue`, off in every shipped model up to v0.4): each colour
+channel divided by its own patch mean is fed next to the observation, to every
+SCN branch and to the PCN observation branch.  A uniform albedo colour cancels in
+it, so it carries the shape without the colour/light ambiguity; `widen_inputs`
+warm-starts such a net from one without it (new weights zero: same output).
 """
 from __future__ import annotations
 
