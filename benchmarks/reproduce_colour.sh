@@ -87,3 +87,16 @@ E="$RUNS/chroma/last.pt"
   --checkpoint 6e="$E" --checkpoint 6a=models/dualcue-cpu-colour.pt --checkpoint v0.4=models/dualcue-cpu-v0.4.pt
 [ -f "$RUNS/eval-6e-unseen-robust-env/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" \
   --checkpoint 6e="$E" --method lambertian --out "$RUNS/eval-6e-unseen-robust-env"
+# stage 6e2: 6e continued for another 9,388 steps (lr 1e-4 cosine, seed 1): twice 6d's step budget
+resume=""; [ -f "$RUNS/chroma-long/last.pt" ] && resume="--resume"
+$MSPS train cpu --threads 2 --data "$DATA/train-colour-mixed" --data "$DATA/train-colour-env" --data "$DATA/train-grey-30" \
+  --data "$DATA/blobs-48" --val "$DATA/val" --init "$E" --out "$RUNS/chroma-long" $resume \
+  --set net.chroma_cue=true --set train.freeze_bn=true --set train.shuffle_window=0 --set train.cache=true \
+  --set train.max_minutes=90 --set train.max_steps=9388 --set train.lr=1e-4 --set train.val_every=500 \
+  --set train.val_max_patches=1500 --set train.seed=1
+E2="$RUNS/chroma-long/last.pt"
+[ -f "$RUNS/report-6e2/report.json" ] || $PY benchmarks/unseen_report.py --data "$DATA/unseen-test-grey" \
+  --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test" --data "$DATA/unseen-test-texture" \
+  --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" --model 6e2="$E2" --out "$RUNS/report-6e2"
+[ -f "$RUNS/real-6e2/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-6e2" \
+  --checkpoint 6e2="$E2"
