@@ -87,12 +87,12 @@ E="$RUNS/chroma/last.pt"
   --checkpoint 6e="$E" --checkpoint 6a=models/dualcue-cpu-colour.pt --checkpoint v0.4=models/dualcue-cpu-v0.4.pt
 [ -f "$RUNS/eval-6e-unseen-robust-env/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" \
   --checkpoint 6e="$E" --method lambertian --out "$RUNS/eval-6e-unseen-robust-env"
-# stage 6e2: 6e continued for another 9,388 steps (lr 1e-4 cosine, seed 1): twice 6d's step budget
+# stage 6e2: 6e continued for another 4,694 steps (lr 1e-4 cosine, seed 1): 1.5x 6d's step budget in all
 resume=""; [ -f "$RUNS/chroma-long/last.pt" ] && resume="--resume"
 $MSPS train cpu --threads 2 --data "$DATA/train-colour-mixed" --data "$DATA/train-colour-env" --data "$DATA/train-grey-30" \
   --data "$DATA/blobs-48" --val "$DATA/val" --init "$E" --out "$RUNS/chroma-long" $resume \
   --set net.chroma_cue=true --set train.freeze_bn=true --set train.shuffle_window=0 --set train.cache=true \
-  --set train.max_minutes=90 --set train.max_steps=9388 --set train.lr=1e-4 --set train.val_every=500 \
+  --set train.max_minutes=60 --set train.max_steps=4694 --set train.lr=1e-4 --set train.val_every=500 \
   --set train.val_max_patches=1500 --set train.seed=1
 E2="$RUNS/chroma-long/last.pt"
 [ -f "$RUNS/report-6e2/report.json" ] || $PY benchmarks/unseen_report.py --data "$DATA/unseen-test-grey" \
