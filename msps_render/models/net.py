@@ -161,6 +161,8 @@ class DualCueNet(nn.Module):
             raise ValueError(f"expected images of shape (B, 3, H, W), got {tuple(image.shape)}")
         if image.shape[-1] % 8 or image.shape[-2] % 8:
             raise ValueError(f"height and width must be multiples of 8 (U-Net), got {tuple(image.shape[-2:])}")
+        if mask is None:  # once, for both normalisations
+            mask = (image.sum(1, keepdim=True) > 0).to(image.dtype)
         x = normalise_observation(image, mask)
         if self.cfg.chroma_cue:
             x = torch.cat([x, chroma_normalise(x, mask)], 1)
