@@ -25,12 +25,14 @@ from pathlib import Path
 import numpy as np
 
 
-def _predictors(models: list[str]):
-    """NAME=PATH checkpoints and the baseline, as `msps eval` loads them (msps_render.models.evaluate)."""
-    from msps_render.models.evaluate import checkpoint_method, lambertian_method
+def _predictors(models: list[str], selfcal: bool = False):
+    """NAME=PATH checkpoints and the baseline, as `msps eval` loads them (msps_render.models.evaluate);
+    with `selfcal`, each again after the albedo-colour self-calibration (NAME+selfcal)."""
+    from msps_render.models.evaluate import checkpoint_method, lambertian_method, with_selfcal
 
     methods = [checkpoint_method(path, name) for name, path in (spec.split("=", 1) for spec in models)]
-    return {m.name: m.frame for m in methods + [lambertian_method()]}
+    methods.append(lambertian_method())
+    return {m.name: m.frame for m in (with_selfcal(methods) if selfcal else methods)}
 
 
 def report(data: Path, preds: dict) -> tuple[dict, list]:
@@ -104,9 +106,11 @@ def main() -> None:
     ap.add_argument("--data", action="append", required=True, type=Path)
     ap.add_argument("--model", action="append", default=[], help="NAME=checkpoint.pt")
     ap.add_argument("--out", required=True, type=Path)
+    ap.add_argument("--selfcal", action="store_true", help="also every method after the albedo-colour "
+                    "self-calibration (msps_render/models/selfcal.py)")
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
-    preds = _predictors(a.model)
+    preds = _predictors(a.model, a.selfcal)
     all_res, md = [], []
     for d in a.data:
         res, shown = report(d, preds)

@@ -51,7 +51,10 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
                                               help="net (the checkpoints) or lambertian (the baseline); "
                                               "repeatable: --method lambertian beside --checkpoint compares "
                                               "both (default: net)"),
-             max_patches: Optional[int] = typer.Option(None, help="limit per condition")):
+             max_patches: Optional[int] = typer.Option(None, help="limit per condition"),
+             selfcal: bool = typer.Option(False, "--selfcal", help="also score every method after the object-level "
+                                               "albedo-colour self-calibration (a column NAME+selfcal each; "
+                                               "models/selfcal.py, docs/appearance.md)")):
     """Angular-error statistics, SSIM, per-object table (whole frames), robustness, for one method or
     several compared on the same frames: metrics.json, table.md (every method a column, 95 % CIs),
     error_hist.png, per_object.csv/.png (frames stored), robustness.png (sweeps)."""
@@ -60,7 +63,7 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out, "report")
-    r = evaluate(data, out, max_patches=max_patches, methods=resolve_methods(checkpoint, method))
+    r = evaluate(data, out, max_patches=max_patches, methods=resolve_methods(checkpoint, method, selfcal))
     for line in summary_lines(r):
         typer.echo(line)
     typer.echo("wrote " + ", ".join(r["files"]))
@@ -84,7 +87,11 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
                                                          "(H, W, 3) or EXR/PNG normal map ((n+1)/2-encoded; "
                                                          "signed EXR too); zero normals are left out. Adds "
                                                          "the truth and the error map to the panel and writes "
-                                                         "OUT-metrics.json")):
+                                                         "OUT-metrics.json"),
+                selfcal: bool = typer.Option(False, "--selfcal", help="first divide out the object's albedo "
+                                             "colour when one uniform colour fits it clearly better than grey "
+                                             "(needs the rig: --calibration or the paper's lights; "
+                                             "models/selfcal.py)")):
     """Normal map of a whole image (overlapping 40x40 tiles, blended) or by the Lambertian baseline,
     with a panel PNG (input, prediction, and with --normal-gt the truth and the angular error)."""
     from msps_render.models.predict import out_paths, predict_main
@@ -92,7 +99,7 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
 
     check_writable(out.parent)
     files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk,
-                         linear=linear, normal_gt=normal_gt)
+                         linear=linear, normal_gt=normal_gt, selfcal=selfcal)
     if normal_gt:
         m = json.loads(out_paths(out)["metrics"].read_text())
         if m.get("n_pixels"):
@@ -122,7 +129,10 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
                                                   "OBJECT/FILE (one folder); repeatable"),
                    srgb: bool = typer.Option(False, "--srgb", help="PNG photos are sRGB-encoded (default: "
                                              "linear, as raw captures)"),
-                   threads: Optional[int] = typer.Option(None, help="torch CPU threads")):
+                   threads: Optional[int] = typer.Option(None, help="torch CPU threads"),
+                   selfcal: bool = typer.Option(False, "--selfcal", help="also score every method after the object-level "
+                                               "albedo-colour self-calibration (a column NAME+selfcal each; "
+                                               "models/selfcal.py, docs/appearance.md)")):
     """Score checkpoints and calibrated Lambertian PS on real captures (validation only: never train on
     real images).  Each folder is composed as `msps compose` does (the three captures nearest the
     layout, divided by light intensity, mixed by the crosstalk); the angular error is taken over the
@@ -144,7 +154,7 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
 
         torch.set_num_threads(threads)
     bench = run_bench_real(captures, out, checkpoint, slant, t, M, skip, srgb,
-                           warn=lambda w: typer.echo(f"warning: {w}", err=True))
+                           warn=lambda w: typer.echo(f"warning: {w}", err=True), selfcal=selfcal)
     for line in summary_table(bench):
         typer.echo(line)
     typer.echo(f"wrote {out}/results.json, results.md, figure.png and per-object maps "

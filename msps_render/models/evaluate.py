@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import zlib
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +30,7 @@ from msps_render.dataset import Manifest, load_manifest
 from msps_render.errors import InputError
 from msps_render.models.baseline import lambertian_ps
 from msps_render.models.metrics import angular_error_deg, error_stats
+from msps_render.models import selfcal
 from msps_render.models.report import (PER_OBJECT_NOTE, error_histogram, per_object_detail, write_plots,
                                        write_tables)
 
@@ -60,26 +61,57 @@ class Method:
     kind: str  # "net" or "lambertian"
     info: dict = field(default_factory=dict)
     model: object = None
+    selfcal: bool = False  # divide out the frame's fitted albedo colour first (models/selfcal.py)
 
-    def patches(self, b) -> np.ndarray:
-        """(B, 3, P, P) normals for a batch dict."""
+    def patches(self, b, scale: np.ndarray | None = None) -> np.ndarray:
+        """(B, 3, P, P) normals for a batch dict; `scale` (B, 3): each patch's frame-level colour factor."""
+        image = b["image"]
+        if self.selfcal:
+            if scale is None:
+                raise ValueError(f"{self.name}: self-calibration needs the frames' colour factors")
+            import torch
+
+            image = image * torch.from_numpy(np.asarray(scale, np.float32))[:, :, None, None]
         if self.kind == LAMBERTIAN:
-            img = b["image"].numpy().transpose(0, 2, 3, 1)
+            img = image.numpy().transpose(0, 2, 3, 1)
             out = np.stack([lambertian_ps(img[i], b["light_dirs"][i].numpy(), b["crosstalk"][i].numpy())
                             for i in range(len(img))])
             return out.transpose(0, 3, 1, 2)
         import torch
 
         with torch.no_grad():
-            pred, _ = self.model(b["image"], b["mask"])
+            pred, _ = self.model(image, b["mask"])
         return pred.numpy()
 
     def frame(self, fr) -> np.ndarray:
+        image = selfcal.self_calibrated(fr.image, fr.mask, fr.light_dirs, fr.crosstalk) if self.selfcal \
+            else fr.image
         if self.kind == LAMBERTIAN:
-            return lambertian_ps(fr.image, fr.light_dirs, fr.crosstalk, fr.mask)
+            return lambertian_ps(image, fr.light_dirs, fr.crosstalk, fr.mask)
         from msps_render.models.predict import predict_image
 
-        return predict_image(self.model, fr.image, fr.mask)
+        return predict_image(self.model, image, fr.mask)
+
+
+def with_selfcal(methods: list[Method]) -> list[Method]:
+    """Each method, then each again after the albedo-colour self-calibration ("NAME+selfcal")."""
+    twins = [replace(m, name=m.name + selfcal.SUFFIX, selfcal=True,
+                     info={**m.info, "description": f"{m.info.get('description', m.name)}, {selfcal.DESCRIPTION}"})
+             for m in methods]
+    return list(methods) + twins
+
+
+def frame_colour_scales(data: Path, condition: str) -> dict[tuple[str, int], np.ndarray]:
+    """(shard file name, frame index) -> the frame's colour factor, for scoring patches after self-calibration."""
+    from msps_render.data import iter_frames
+
+    try:
+        frames = list(iter_frames(data, condition=condition))
+    except InputError:
+        raise InputError(data, "--selfcal fits each object's colour on its whole frame; this dataset has no "
+                               "whole frames (render a preset with store_frames = true)") from None
+    return {(fr.shard, fr.index): selfcal.fit_albedo_colour(fr.image, fr.mask, fr.light_dirs, fr.crosstalk).scale
+            for fr in frames}
 
 
 def lambertian_method() -> Method:
@@ -98,7 +130,7 @@ def checkpoint_method(path: str | Path, name: str | None = None) -> Method:
                    "val_mae_deg": ck.get("val_mae_deg")}, model)
 
 
-def resolve_methods(checkpoints=(), methods=()) -> list[Method]:
+def resolve_methods(checkpoints=(), methods=(), selfcal: bool = False) -> list[Method]:
     """`msps eval --checkpoint [NAME=]PATH ... --method net|lambertian ...` -> the methods, checkpoints first.
 
     `net` stands for the checkpoints given (the shipped one when none is); checkpoints imply `net`, so
@@ -136,7 +168,7 @@ def resolve_methods(checkpoints=(), methods=()) -> list[Method]:
         out.append(m)
     if LAMBERTIAN in kinds:
         out.append(lambertian_method())
-    return out
+    return with_selfcal(out) if selfcal else out
 
 
 def bootstrap_ci(num: np.ndarray, den: np.ndarray, key: str, n_boot: int = N_BOOT,
@@ -194,15 +226,17 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
         usum: dict = defaultdict(lambda: np.zeros(len(methods)))
         upix: dict = defaultdict(float)
         seen = 0
+        scales = frame_colour_scales(data, cond) if any(m.selfcal for m in methods) else None
         for b in make_loader(ds, 64, shuffle=False):
             g = b["normal"].numpy()
             mk = b["mask"].numpy()
             keys = list(zip(b["shard"].tolist(), b["frame"].tolist()))
+            scale = None if scales is None else np.stack([scales[(ds.shards[s][0].name, f)] for s, f in keys])
             pix = mk[:, 0].sum((1, 2))
             for k, px in zip(keys, pix):
                 upix[k] += float(px)
             for j, m in enumerate(methods):
-                p = m.patches(b)
+                p = m.patches(b, scale)
                 e = angular_error_deg(p.transpose(0, 2, 3, 1), g.transpose(0, 2, 3, 1))
                 errs[m.name].append(e[mk[:, 0] > 0])
                 ssims[m.name] += _ssim_masked(p, g, mk) * len(p)

@@ -193,7 +193,8 @@ def write_panel(path: Path, image: np.ndarray, mask: np.ndarray, normal: np.ndar
 def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | None = None,
                  method: str = "net", mask: str | Path | None = None, calibration: str | Path | None = None,
                  light_dirs: str | None = None, crosstalk: str | None = None, warn=None,
-                 linear: bool | None = None, normal_gt: str | Path | None = None, panel: bool = True) -> list[Path]:
+                 linear: bool | None = None, normal_gt: str | Path | None = None, panel: bool = True,
+                 selfcal: bool = False) -> list[Path]:
     """Write OUT.npy (H, W, 3 normals), OUT.png (visualisation) and OUT-panel.png (input, prediction;
     with `normal_gt` also the ground truth and the error map, and OUT-metrics.json with the MAE).
 
@@ -205,11 +206,21 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
     gt = read_normal_gt(normal_gt, img.shape[:2]) if normal_gt else None  # before any work: fail early
     calibrated = bool(calibration or light_dirs or crosstalk)
     L, M = load_calibration(calibration, light_dirs, crosstalk)  # validated on both paths
+    fit = None
+    if selfcal:
+        from msps_render.models.selfcal import apply_colour_fit, fit_albedo_colour
+
+        if not calibrated:
+            warn("--selfcal without --calibration: fitting the colour under the paper's lights")
+        fit = fit_albedo_colour(img, mk, L, M)
+        img_in = apply_colour_fit(img, fit)
+    else:
+        img_in = img
     if method == "lambertian":
         if not calibrated:
             warn("no --calibration: assuming the paper's lights (slant 30 deg, tilts 0/120/240 deg, "
                  "crosstalk 0.92/0.04)")
-        n = lambertian_ps(img, L, M, mk)
+        n = lambertian_ps(img_in, L, M, mk)
         label = "lambertian"
     else:
         from msps_render.models.checkpoint import load_checkpoint
@@ -221,8 +232,10 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
                 warn(w)
         if min(img.shape[:2]) < 40:
             raise InputError(image, f"image is {img.shape[1]}x{img.shape[0]}; the network needs at least 40x40")
-        n = predict_image(model, img, mk)
+        n = predict_image(model, img_in, mk)
         label = f"net ({Path(ck).name})"
+    if fit is not None:
+        label += " +selfcal " + ("x" + "/".join(f"{v:.2f}" for v in fit.scale) if fit.applied else "(grey kept)")
     paths = out_paths(out)
     paths["npy"].parent.mkdir(parents=True, exist_ok=True)
     np.save(paths["npy"], n.astype(np.float32))
@@ -239,6 +252,8 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
         stats = error_stats(err[scored])
         metrics = {"image": str(image), "normal_gt": str(normal_gt), "method": method,
                    "checkpoint": None if method == "lambertian" else str(ck), **stats,
+                   "selfcal": None if fit is None else {"applied": fit.applied, "scale": fit.scale.tolist(),
+                                                        "grey_rms": fit.grey_rms, "colour_rms": fit.colour_rms},
                    "n_mask_pixels": int(mk.sum()), "n_left_out": int((mk & ~valid).sum())}
         paths["metrics"].write_text(json.dumps(metrics, indent=1))
         title += (f" — MAE {stats['mae_deg']:.2f}° over {stats['n_pixels']:,} px" if stats["n_pixels"]

@@ -193,6 +193,23 @@ def lambertian_method() -> Method:
                   {"kind": "calibrated Lambertian photometric stereo (measured light directions, crosstalk)"})
 
 
+def with_selfcal(methods: list[Method]) -> list[Method]:
+    """Each method, then each again on the object's image after the albedo-colour self-calibration."""
+    from dataclasses import replace
+
+    from msps_render.models import selfcal
+
+    def twin(m: Method) -> Method:
+        def predict(o: RealObject) -> np.ndarray:
+            img = selfcal.self_calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)
+            return m.predict(replace(o, image=img))
+
+        return Method(m.name + selfcal.SUFFIX, predict,
+                      {**m.info, "kind": f"{m.info.get('kind', m.name)}, {selfcal.DESCRIPTION}"}, m.warnings)
+
+    return list(methods) + [twin(m) for m in methods]
+
+
 def net_method(name: str, checkpoint: str | Path) -> Method:
     """A dual-cue checkpoint through whole-image tiled prediction (`predict_image`)."""
     from msps_render.calibration import geometry_warnings
@@ -399,7 +416,7 @@ def write_report(bench: RealBench, objects: list[RealObject], out: Path, setting
 
 def run_bench_real(folders, out: str | Path, checkpoints=(), slant_deg: float = 30.0,
                    tilts_deg=(0.0, 120.0, 240.0), crosstalk: np.ndarray | None = None, skip=(),
-                   srgb: bool = False, warn=None) -> RealBench:
+                   srgb: bool = False, warn=None, selfcal: bool = False) -> RealBench:
     """Validate OUT and every folder, load every checkpoint, evaluate, then write OUT all-or-nothing."""
     from msps_render.calibration import PAPER_CROSSTALK
     from msps_render.io.staging import check_new_out, staged_dir
@@ -418,9 +435,12 @@ def run_bench_real(folders, out: str | Path, checkpoints=(), slant_deg: float = 
     specs = parse_checkpoints(checkpoints)
     objects = [load_real_object(f, slant_deg, tilts_deg, M, skips[n], srgb, name=n) for f, n in zip(folders, names)]
     methods = [net_method(n, p) for n, p in specs] + [lambertian_method()]
+    if selfcal:
+        methods = with_selfcal(methods)
     bench = evaluate_real(objects, methods, warn)
     settings = {"slant_deg": float(slant_deg), "tilts_deg": [float(t) for t in tilts_deg],
-                "crosstalk": M.tolist(), "srgb": bool(srgb), "skip": [str(s) for s in skip or ()]}
+                "crosstalk": M.tolist(), "srgb": bool(srgb), "skip": [str(s) for s in skip or ()],
+                "selfcal": bool(selfcal)}
     with staged_dir(out) as stage:
         write_report(bench, objects, stage, settings)
     bench.summary["settings"] = settings
