@@ -30,7 +30,7 @@ def main(argv=None) -> None:
     models = {name: load_checkpoint(path, expect_preset="cpu")[0]
               for name, path in (m.split("=", 1) for m in args.model)}
     for name, model in models.items():
-        e = [angular_error_deg(predict_image(model, f.image, f.mask)[f.mask], f.normal[f.mask]).mean() for f in frames]
+        e = [angular_error_deg(predict_image(model, f.image, f.mask, rig=f.crosstalk @ f.light_dirs)[f.mask], f.normal[f.mask]).mean() for f in frames]
         print(f"{name} {np.mean(e):.2f}")
     b = [angular_error_deg(lambertian_ps(f.image, f.light_dirs, f.crosstalk)[f.mask], f.normal[f.mask]).mean()
          for f in frames]

@@ -469,3 +469,54 @@ def test_chroma_cue_warm_start_reproduces_the_old_network_then_learns(tiny_datas
               tiny_dataset, tmp_path / "c", progress=False, init=tmp_path / "a" / "last.pt")
     with pytest.raises(ValueError, match="does not widen"):
         widen_inputs(DualCueNet(load_model_config("cpu", ["net.branch=4"]).net_config()), ck["model"])
+
+
+def test_lambert_cue_is_the_calibrated_normal_on_a_lambertian_sphere():
+    """On a uniform-albedo Lambertian sphere lit by all three lights, the cue's normal channels are the
+    analytic normals and its log-length channel is 0 (|b| = rho everywhere); an albedo edge shows in it."""
+    from msps_render.calibration import PAPER_CROSSTALK, direction_from_slant_tilt
+    from msps_render.models.net import lambertian_cue, rig_matrix
+
+    L = np.stack([direction_from_slant_tilt(30.0, t) for t in (0.0, 120.0, 240.0)])
+    y, x = np.mgrid[:40, :40]
+    u, v = (x + 0.5) / 40 * 1.2 - 0.6, 0.6 - (y + 0.5) / 40 * 1.2  # the sphere's centre, all lit
+    n = np.stack([u, v, np.sqrt(1 - u ** 2 - v ** 2)], -1)
+    assert ((n @ L.T) > 0).all()
+    shading = (n @ L.T) @ PAPER_CROSSTALK.T
+    img = torch.from_numpy((0.6 * shading).transpose(2, 0, 1)[None].astype(np.float32))
+    mask = torch.ones(1, 1, 40, 40)
+    cue = lambertian_cue(img, mask, rig_matrix(L, PAPER_CROSSTALK))
+    assert cue.shape == (1, 4, 40, 40)
+    np.testing.assert_allclose(cue[0, :3].numpy().transpose(1, 2, 0), n, atol=1e-4)
+    assert cue[0, 3].abs().max() < 1e-4
+    edge = img.clone()
+    edge[..., 20:] *= 0.5  # half the albedo on the right: log(0.25 / mean) vs log(1 / mean)
+    logq = lambertian_cue(edge, mask, rig_matrix(L, PAPER_CROSSTALK))[0, 3]
+    assert float(logq[:, :20].mean() - logq[:, 20:].mean()) == pytest.approx(np.log(4.0), abs=1e-3)
+
+
+def test_lambert_cue_warm_start_and_the_rig_it_needs(tiny_dataset, tmp_path):
+    """`--init` into a net with `lambert_cue`: only the PCN's observation layer widens (4 inputs at zero
+    weight: the same output as before); a fine-tune moves them; without a rig the net refuses to run."""
+    from msps_render.models.net import rig_matrix, widen_inputs
+    from msps_render.models.train import load_checkpoint, train
+
+    base = ["train.max_steps=3", "train.val_every=3", "train.batch_size=4", "train.val_max_patches=8"]
+    train(load_model_config("cpu", base), tiny_dataset, tiny_dataset, tmp_path / "a", progress=False)
+    old, _, ck = load_checkpoint(tmp_path / "a" / "last.pt")
+    wide = DualCueNet(load_model_config("cpu", ["net.lambert_cue=true"]).net_config()).eval()
+    assert widen_inputs(wide, ck["model"]) == ["pcn.obs.0.weight"]
+    assert count_parameters(wide) == count_parameters(old) + 32 * 4
+    x = torch.rand(2, 3, 40, 40)
+    rig = rig_matrix(np.eye(3) * 0.5 + 0.3, np.eye(3))
+    with torch.no_grad():
+        assert torch.equal(old(x)[0], wide(x, None, rig)[0])
+    with pytest.raises(ValueError, match="takes the rig"):
+        wide(x)
+    tuned = load_model_config("cpu", base + ["net.lambert_cue=true", "train.freeze_bn=true"])
+    train(tuned, tiny_dataset, tiny_dataset, tmp_path / "b", progress=False, init=tmp_path / "a" / "last.pt")
+    b, bcfg, _ = load_checkpoint(tmp_path / "b" / "last.pt")
+    assert bcfg.net.lambert_cue and b.state_dict()["pcn.obs.0.weight"][:, 3:].abs().max() > 0
+    with pytest.raises(InputError, match="different network"):  # the cue and a narrower PCN
+        train(load_model_config("cpu", base + ["net.lambert_cue=true", "net.pcn_branch=16"]), tiny_dataset,
+              tiny_dataset, tmp_path / "c", progress=False, init=tmp_path / "a" / "last.pt")

@@ -80,7 +80,7 @@ class Method:
         import torch
 
         with torch.no_grad():
-            pred, _ = self.model(image, b["mask"])
+            pred, _ = self.model(image, b["mask"], b["crosstalk"] @ b["light_dirs"])
         return pred.numpy()
 
     def frame(self, fr) -> np.ndarray:
@@ -90,7 +90,7 @@ class Method:
             return lambertian_ps(image, fr.light_dirs, fr.crosstalk, fr.mask)
         from msps_render.models.predict import predict_image
 
-        return predict_image(self.model, image, fr.mask)
+        return predict_image(self.model, image, fr.mask, rig=fr.crosstalk @ fr.light_dirs)
 
 
 def with_selfcal(methods: list[Method]) -> list[Method]:

@@ -35,6 +35,7 @@ class NetConfig:
     pcn: tuple[int, ...] = (64, 64, 32, 32)  # PCN FC widths after the merge
     mode: str = "dual"  # dual | scn | pcn
     chroma_cue: bool = False  # add each channel divided by its own patch mean as a second input
+    lambert_cue: bool = False  # give the PCN the calibrated Lambertian normal and its unit-length residual
 
     def __post_init__(self):
         if self.mode not in ("dual", "scn", "pcn"):
@@ -108,7 +109,8 @@ class PCN(nn.Module):
         super().__init__()
         w = cfg.pcn_branch
         self.with_normal = with_normal
-        self.obs = nn.Sequential(nn.Conv2d(6 if cfg.chroma_cue else 3, w, 1), nn.ReLU(inplace=True))
+        n_obs = (6 if cfg.chroma_cue else 3) + (LAMBERT_CHANNELS if cfg.lambert_cue else 0)
+        self.obs = nn.Sequential(nn.Conv2d(n_obs, w, 1), nn.ReLU(inplace=True))
         self.nrm = nn.Sequential(nn.Conv2d(3, w, 1), nn.ReLU(inplace=True)) if with_normal else None
         layers, cin = [], w * (2 if with_normal else 1)
         for cout in cfg.pcn:
@@ -147,8 +149,31 @@ def chroma_normalise(x: torch.Tensor, mask: torch.Tensor | None = None, floor: f
     return x / m.clamp_min(floor)
 
 
+LAMBERT_CHANNELS = 4  # Lambertian normal (3) + log of its unnormalised length against the patch's (1)
+
+
+def lambertian_cue(image: torch.Tensor, mask: torch.Tensor, rig: torch.Tensor) -> torch.Tensor:
+    """(B, 4, H, W): calibrated Lambertian PS per pixel, b = (M L)^-1 c, as the unit normal b / |b| and
+    log(|b|^2 / mean over the patch).
+
+    Why: on a uniform-albedo Lambertian pixel lit by all three lights b is rho * n exactly, so the
+    normal is the answer and the log term is 0; shadows, highlights, interreflections and albedo
+    changes show up as a log term away from 0.  The network learns where to trust it -- a fusion
+    of the physics and the learned cues (docs/reproducing.md "stage 7")."""
+    if rig.ndim == 2:
+        rig = rig.expand(image.shape[0], 3, 3)
+    b = torch.einsum("bij,bjhw->bihw", torch.linalg.inv(rig.to(image.dtype)), image)
+    q = (b * b).sum(1, keepdim=True)
+    qm = (q * mask).sum((2, 3), keepdim=True) / mask.sum((2, 3), keepdim=True).clamp_min(1.0)
+    n = b / q.sqrt().clamp_min(1e-12)
+    logq = torch.log(q.clamp_min(1e-12) / qm.clamp_min(1e-12)).clamp(-3.0, 3.0)
+    return torch.cat([n, logq], 1) * mask
+
+
 class DualCueNet(nn.Module):
-    """`forward(image, mask)` -> (final normal, coarse normal or None), both (B, 3, H, W)."""
+    """`forward(image, mask, rig)` -> (final normal, coarse normal or None), both (B, 3, H, W).
+
+    `rig` (B, 3, 3) or (3, 3) = crosstalk @ light_dirs, needed only by a net with `lambert_cue`."""
 
     def __init__(self, cfg: NetConfig = NetConfig()):
         super().__init__()
@@ -156,7 +181,11 @@ class DualCueNet(nn.Module):
         self.scn = SCN(cfg) if cfg.mode in ("dual", "scn") else None
         self.pcn = PCN(cfg, with_normal=cfg.mode == "dual") if cfg.mode in ("dual", "pcn") else None
 
-    def forward(self, image: torch.Tensor, mask: torch.Tensor | None = None):
+    @property
+    def needs_rig(self) -> bool:
+        return self.cfg.lambert_cue and self.pcn is not None
+
+    def forward(self, image: torch.Tensor, mask: torch.Tensor | None = None, rig: torch.Tensor | None = None):
         if image.ndim != 4 or image.shape[1] != 3:
             raise ValueError(f"expected images of shape (B, 3, H, W), got {tuple(image.shape)}")
         if image.shape[-1] % 8 or image.shape[-2] % 8:
@@ -169,12 +198,21 @@ class DualCueNet(nn.Module):
         coarse = self.scn(x) if self.scn is not None else None
         if self.pcn is None:
             return coarse, coarse
+        if self.needs_rig:
+            if rig is None:
+                raise ValueError("this network takes the rig (crosstalk @ light_dirs): it has net.lambert_cue")
+            x = torch.cat([x, lambertian_cue(image, mask, rig)], 1)
         return self.pcn(x, coarse), coarse
 
 
+def rig_matrix(light_dirs, crosstalk) -> torch.Tensor:
+    """crosstalk @ light_dirs, (..., 3, 3): what a `lambert_cue` network takes beside the image."""
+    return torch.as_tensor(crosstalk, dtype=torch.float32) @ torch.as_tensor(light_dirs, dtype=torch.float32)
+
+
 def widen_inputs(model: nn.Module, state: dict[str, torch.Tensor]) -> list[str]:
-    """Load `state` from a network whose first layers take fewer input channels (no chroma cue)
-    into `model` (with it): old weights fill the leading input slices, the new inputs start at
+    """Load `state` from a network whose first layers take fewer input channels (no chroma or
+    Lambertian cue) into `model` (with them): old weights fill the leading input slices, the new inputs start at
     zero, so the widened net computes exactly what the old one did until training moves them.
     Returns the widened keys; any other shape difference is an error."""
     own = model.state_dict()

@@ -27,10 +27,12 @@ def _window(size: int) -> np.ndarray:
 
 
 def predict_image(model, image: np.ndarray, mask: np.ndarray, tile: int = 40, stride: int = 20,
-                  batch: int = 64) -> np.ndarray:
-    """Normals (H, W, 3) of an image (H, W, 3) with a dual-cue model; 0 outside the mask."""
+                  batch: int = 64, rig: np.ndarray | None = None) -> np.ndarray:
+    """Normals (H, W, 3) of an image (H, W, 3) with a dual-cue model; 0 outside the mask.
+    `rig` = crosstalk @ light_dirs (3, 3): needed by a network with the Lambertian cue."""
     import torch
 
+    rig_t = None if rig is None else torch.as_tensor(np.asarray(rig), dtype=torch.float32)
     H, W = mask.shape
     if H < tile or W < tile:
         raise ValueError(f"image {H}x{W} is smaller than the {tile}x{tile} tile")
@@ -47,7 +49,7 @@ def predict_image(model, image: np.ndarray, mask: np.ndarray, tile: int = 40, st
             x = np.stack([image[y:y + tile, x_:x_ + tile] for y, x_ in yx]).transpose(0, 3, 1, 2)
             mk = np.stack([m[y:y + tile, x_:x_ + tile] for y, x_ in yx])[:, None]
             pred, _ = model(torch.from_numpy(np.ascontiguousarray(x, np.float32)),
-                            torch.from_numpy(mk.astype(np.float32)))
+                            torch.from_numpy(mk.astype(np.float32)), rig_t)
             pred = pred.numpy().transpose(0, 2, 3, 1)
             for (y, x_), p in zip(yx, pred):
                 acc[y:y + tile, x_:x_ + tile] += p * win[..., None]
@@ -230,9 +232,12 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
         if calibrated:
             for w in geometry_warnings(L, M, ckd.get("train_lights")):
                 warn(w)
+        elif getattr(model, "needs_rig", False):
+            warn("no --calibration: this network takes the lights; assuming the paper's (slant 30 deg, "
+                 "tilts 0/120/240 deg, crosstalk 0.92/0.04)")
         if min(img.shape[:2]) < 40:
             raise InputError(image, f"image is {img.shape[1]}x{img.shape[0]}; the network needs at least 40x40")
-        n = predict_image(model, img_in, mk)
+        n = predict_image(model, img_in, mk, rig=M @ L)
         label = f"net ({Path(ck).name})"
     if fit is not None:
         label += " +selfcal " + ("x" + "/".join(f"{v:.2f}" for v in fit.scale) if fit.applied else "(grey kept)")

@@ -20,6 +20,9 @@ class NetSection(StrictModel):
     mode: Literal["dual", "scn", "pcn"] = Field("dual", description="both cues (dual) or one network alone")
     chroma_cue: bool = Field(False, description="also feed each colour channel divided by its own patch mean "
                                                 "(an albedo-colour-invariant cue; docs/reproducing.md stage 6e)")
+    lambert_cue: bool = Field(False, description="also feed the PCN the calibrated Lambertian normal and its "
+                                                 "length residual per pixel (the net then needs the rig: "
+                                                 "light directions and crosstalk; docs/reproducing.md stage 7)")
 
 
 class TrainSection(StrictModel):
@@ -59,7 +62,7 @@ class ModelConfig(StrictModel):
 
         n = self.net
         return NetConfig(branch=n.branch, unet=tuple(n.unet), pcn_branch=n.pcn_branch, pcn=tuple(n.pcn), mode=n.mode,
-                         chroma_cue=n.chroma_cue)
+                         chroma_cue=n.chroma_cue, lambert_cue=n.lambert_cue)
 
 
 def load_model_config(path_or_name: str | Path, overrides: list[str] = ()) -> ModelConfig:

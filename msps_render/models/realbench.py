@@ -222,7 +222,7 @@ def net_method(name: str, checkpoint: str | Path) -> Method:
         if min(o.mask.shape) < 40:
             raise InputError(o.root, f"composed image is {o.mask.shape[1]}x{o.mask.shape[0]}; "
                                      "the network needs at least 40x40")
-        return predict_image(model, o.image, o.mask)
+        return predict_image(model, o.image, o.mask, rig=o.crosstalk @ o.light_dirs)
 
     def warnings(o: RealObject) -> list[str]:
         return [f"{name} on {o.name}: {w}" for w in geometry_warnings(o.light_dirs, o.crosstalk,

@@ -62,7 +62,7 @@ def validate(model, loader, max_patches: int) -> float:
     model.eval()
     err_sum, n_pix, seen = 0.0, 0.0, 0
     for b in loader:
-        pred, _ = model(b["image"], b["mask"])
+        pred, _ = model(b["image"], b["mask"], batch_rig(b))
         e = torch.rad2deg(angular_error(pred, b["normal"])) * b["mask"]
         err_sum += float(e.sum())
         n_pix += float(b["mask"].sum())
@@ -152,15 +152,29 @@ def start_run(run: Run, resume: bool, init: str | Path | None) -> None:
         raise InputError(run.out, "already holds a training run; use --resume to continue it")
     elif init is not None:
         _, icfg, ick = load_checkpoint(init)
-        adds_chroma = (not icfg.net.chroma_cue and run.cfg.net.chroma_cue
-                       and icfg.net.model_copy(update={"chroma_cue": True}) == run.cfg.net)
-        if icfg.net != run.cfg.net and not adds_chroma:
+        adds_cues = _adds_input_cues(icfg.net, run.cfg.net)
+        if icfg.net != run.cfg.net and not adds_cues:
             raise InputError(init, f"--init checkpoint has a different network ({icfg.preset}: {icfg.net})")
-        if adds_chroma:  # same net plus the chroma cue: its new inputs start at zero weight
+        if adds_cues:  # same net plus input cues: the new inputs start at zero weight
             widen_inputs(run.model, ick["model"])
         else:
             run.model.load_state_dict(ick["model"])
         run.state["init_from"] = f"{Path(init).name} sha1:{_sha1(init)[:12]}"
+
+
+INPUT_CUES = ("chroma_cue", "lambert_cue")
+
+
+def _adds_input_cues(old, new) -> bool:
+    """`new` is `old` with one or more input cues switched on (and nothing else changed)."""
+    added = [c for c in INPUT_CUES if getattr(new, c) and not getattr(old, c)]
+    removed = [c for c in INPUT_CUES if getattr(old, c) and not getattr(new, c)]
+    return bool(added) and not removed and old.model_copy(update={c: True for c in added}) == new
+
+
+def batch_rig(batch: dict) -> torch.Tensor:
+    """(B, 3, 3) crosstalk @ light_dirs of a batch (what a `lambert_cue` net takes)."""
+    return batch["crosstalk"] @ batch["light_dirs"]
 
 
 def set_train_mode(model: torch.nn.Module, freeze_bn: bool) -> None:
@@ -181,7 +195,7 @@ def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
 def train_step(run: Run, batch: dict, device: str) -> tuple[torch.Tensor, dict]:
     """One optimizer step on one batch: (loss, loss parts)."""
     x, n, m = batch["image"].to(device), batch["normal"].to(device), batch["mask"].to(device)
-    final, coarse = run.model(x, m)
+    final, coarse = run.model(x, m, batch_rig(batch).to(device))
     loss, parts = total_loss(final, coarse, n, m, run.cfg.net.mode)
     run.opt.zero_grad(set_to_none=True)
     loss.backward()
