@@ -100,3 +100,27 @@ E2="$RUNS/chroma-long/last.pt"
   --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" --model 6e2="$E2" --out "$RUNS/report-6e2"
 [ -f "$RUNS/real-6e2/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-6e2" \
   --checkpoint 6e2="$E2"
+
+# 6. stage 7 (docs/reproducing.md "Stage 7"): object-level albedo-colour self-calibration (--selfcal, no training)
+#    for the shipped models, then 7a = 6d's run plus the Lambertian cue (net.lambert_cue); rule in runs/7a-decision.txt
+[ -f "$DATA/unseen-robust-env/dataset.json" ] || $MSPS render unseen-robust-env --out "$DATA/unseen-robust-env" --workers 2
+[ -f "$RUNS/report-selfcal/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --data "$DATA/unseen-test-grey" \
+  --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" \
+  --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" --model v0.4=models/dualcue-cpu-v0.4.pt \
+  --model 6a=models/dualcue-cpu-colour.pt --out "$RUNS/report-selfcal"
+resume=""; [ -f "$RUNS/lambert/last.pt" ] && resume="--resume"
+$MSPS train cpu --threads 2 --data "$DATA/train-colour-mixed" --data "$DATA/train-colour-env" --data "$DATA/train-grey-30" \
+  --data "$DATA/blobs-48" --val "$DATA/val" --init models/dualcue-cpu-v0.4.pt --out "$RUNS/lambert" $resume \
+  --set net.lambert_cue=true --set train.freeze_bn=true --set train.shuffle_window=0 --set train.cache=true \
+  --set train.max_minutes=100 --set train.max_steps=9388 --set train.lr=2e-4 --set train.val_every=500 \
+  --set train.val_max_patches=1500
+A7="$RUNS/lambert/last.pt"
+[ -f "$RUNS/report-7a/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --data "$DATA/unseen-test-grey" \
+  --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" \
+  --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" --model 7a="$A7" --out "$RUNS/report-7a"
+[ -f "$RUNS/real-7a/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-7a" --selfcal \
+  --checkpoint 7a="$A7" --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --checkpoint 6a=models/dualcue-cpu-colour.pt
+[ -f "$RUNS/eval-7a-unseen-robust-env/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal \
+  --checkpoint 7a="$A7" --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --method lambertian \
+  --out "$RUNS/eval-7a-unseen-robust-env"
+[ -f "$RUNS/blob-7a.txt" ] || $PY benchmarks/blob_check.py --model 7a="$A7" | tee "$RUNS/blob-7a.txt"
