@@ -517,6 +517,10 @@ def test_lambert_cue_warm_start_and_the_rig_it_needs(tiny_dataset, tmp_path):
     train(tuned, tiny_dataset, tiny_dataset, tmp_path / "b", progress=False, init=tmp_path / "a" / "last.pt")
     b, bcfg, _ = load_checkpoint(tmp_path / "b" / "last.pt")
     assert bcfg.net.lambert_cue and b.state_dict()["pcn.obs.0.weight"][:, 3:].abs().max() > 0
+    both = DualCueNet(load_model_config("cpu", ["net.lambert_cue=true", "net.lambert_scn=true"]).net_config()).eval()
+    assert sorted(widen_inputs(both, ck["model"])) == ["pcn.obs.0.weight", "scn.enc0.0.weight"]
+    with torch.no_grad():  # the SCN's new inputs start at zero too
+        assert torch.equal(old(x)[1], both(x, None, rig)[1]) and torch.equal(old(x)[0], both(x, None, rig)[0])
     with pytest.raises(InputError, match="different network"):  # the cue and a narrower PCN
         train(load_model_config("cpu", base + ["net.lambert_cue=true", "net.pcn_branch=16"]), tiny_dataset,
               tiny_dataset, tmp_path / "c", progress=False, init=tmp_path / "a" / "last.pt")

@@ -36,6 +36,7 @@ class NetConfig:
     mode: str = "dual"  # dual | scn | pcn
     chroma_cue: bool = False  # add each channel divided by its own patch mean as a second input
     lambert_cue: bool = False  # give the PCN the calibrated Lambertian normal and its unit-length residual
+    lambert_scn: bool = False  # ... and the SCN's U-Net too (beside the colour branches' features)
 
     def __post_init__(self):
         if self.mode not in ("dual", "scn", "pcn"):
@@ -77,7 +78,7 @@ class SCN(nn.Module):
         self.branches = nn.ModuleList([nn.Sequential(_conv(self.per_branch, b), _conv(b, b)) for _ in range(3)])
         self.igc = IGCBlock(3 * b, 3)
         c0, c1, c2, c3 = cfg.unet
-        self.enc0 = _conv(3 * b, c0)
+        self.enc0 = _conv(3 * b + (LAMBERT_CHANNELS if cfg.lambert_scn else 0), c0)
         self.down1, self.enc1 = _conv(c0, c1, 2), _conv(c1, c1)
         self.down2, self.enc2 = _conv(c1, c2, 2), _conv(c2, c2)
         self.down3, self.enc3 = _conv(c2, c3, 2), _conv(c3, c3)
@@ -89,10 +90,14 @@ class SCN(nn.Module):
         self.dec0 = _conv(2 * c0, c0)
         self.head = nn.Sequential(nn.Conv2d(c0, c0, 1), nn.ReLU(inplace=True), nn.Conv2d(c0, 3, 1))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """`x`: (B, 3 * per_branch, H, W), channel-major ([r, g, b] or [r, g, b, r', g', b'])."""
+    def forward(self, x: torch.Tensor, lambert: torch.Tensor | None = None) -> torch.Tensor:
+        """`x`: (B, 3 * per_branch, H, W), channel-major ([r, g, b] or [r, g, b, r', g', b']);
+        `lambert`: the (B, 4, H, W) Lambertian cue, joined to the branches' features (`lambert_scn`)."""
         f = torch.cat([br(x[:, i::3]) for i, br in enumerate(self.branches)], 1)
-        e0 = self.enc0(self.igc(f))
+        f = self.igc(f)
+        if lambert is not None:
+            f = torch.cat([f, lambert], 1)
+        e0 = self.enc0(f)
         e1 = self.enc1(self.down1(e0))
         e2 = self.enc2(self.down2(e1))
         e3 = self.enc3(self.down3(e2))
@@ -183,7 +188,7 @@ class DualCueNet(nn.Module):
 
     @property
     def needs_rig(self) -> bool:
-        return self.cfg.lambert_cue and self.pcn is not None
+        return (self.cfg.lambert_cue and self.pcn is not None) or (self.cfg.lambert_scn and self.scn is not None)
 
     def forward(self, image: torch.Tensor, mask: torch.Tensor | None = None, rig: torch.Tensor | None = None):
         if image.ndim != 4 or image.shape[1] != 3:
@@ -195,13 +200,16 @@ class DualCueNet(nn.Module):
         x = normalise_observation(image, mask)
         if self.cfg.chroma_cue:
             x = torch.cat([x, chroma_normalise(x, mask)], 1)
-        coarse = self.scn(x) if self.scn is not None else None
-        if self.pcn is None:
-            return coarse, coarse
+        lam = None
         if self.needs_rig:
             if rig is None:
                 raise ValueError("this network takes the rig (crosstalk @ light_dirs): it has net.lambert_cue")
-            x = torch.cat([x, lambertian_cue(image, mask, rig)], 1)
+            lam = lambertian_cue(image, mask, rig)
+        coarse = self.scn(x, lam if self.cfg.lambert_scn else None) if self.scn is not None else None
+        if self.pcn is None:
+            return coarse, coarse
+        if self.cfg.lambert_cue:
+            x = torch.cat([x, lam], 1)
         return self.pcn(x, coarse), coarse
 
 

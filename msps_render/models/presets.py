@@ -23,6 +23,8 @@ class NetSection(StrictModel):
     lambert_cue: bool = Field(False, description="also feed the PCN the calibrated Lambertian normal and its "
                                                  "length residual per pixel (the net then needs the rig: "
                                                  "light directions and crosstalk; docs/reproducing.md stage 7)")
+    lambert_scn: bool = Field(False, description="feed the same Lambertian cue to the SCN's U-Net as well "
+                                                 "(beside the colour branches' features; needs the rig)")
 
 
 class TrainSection(StrictModel):
@@ -62,7 +64,8 @@ class ModelConfig(StrictModel):
 
         n = self.net
         return NetConfig(branch=n.branch, unet=tuple(n.unet), pcn_branch=n.pcn_branch, pcn=tuple(n.pcn), mode=n.mode,
-                         chroma_cue=n.chroma_cue, lambert_cue=n.lambert_cue)
+                         chroma_cue=n.chroma_cue, lambert_cue=n.lambert_cue,
+                         lambert_scn=n.lambert_scn)
 
 
 def load_model_config(path_or_name: str | Path, overrides: list[str] = ()) -> ModelConfig:

@@ -162,7 +162,7 @@ def start_run(run: Run, resume: bool, init: str | Path | None) -> None:
         run.state["init_from"] = f"{Path(init).name} sha1:{_sha1(init)[:12]}"
 
 
-INPUT_CUES = ("chroma_cue", "lambert_cue")
+INPUT_CUES = ("chroma_cue", "lambert_cue", "lambert_scn")
 
 
 def _adds_input_cues(old, new) -> bool:
