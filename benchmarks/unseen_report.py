@@ -25,14 +25,16 @@ from pathlib import Path
 import numpy as np
 
 
-def _predictors(models: list[str], selfcal: bool = False):
+def _predictors(models: list[str], selfcal: bool = False, refine: bool = False):
     """NAME=PATH checkpoints and the baseline, as `msps eval` loads them (msps_render.models.evaluate);
-    with `selfcal`, each again after the albedo-colour self-calibration (NAME+selfcal)."""
-    from msps_render.models.evaluate import checkpoint_method, lambertian_method, with_selfcal
+    with `selfcal`, each again after the albedo-colour self-calibration (NAME+selfcal); with `refine`,
+    each network again with the Lambertian refinement (NAME+refine, NAME+selfcal+refine)."""
+    from msps_render.models.evaluate import checkpoint_method, lambertian_method, with_refine, with_selfcal
 
     methods = [checkpoint_method(path, name) for name, path in (spec.split("=", 1) for spec in models)]
     methods.append(lambertian_method())
-    return {m.name: m.frame for m in (with_selfcal(methods) if selfcal else methods)}
+    methods = with_selfcal(methods) if selfcal else methods
+    return {m.name: m.frame for m in (with_refine(methods) if refine else methods)}
 
 
 def report(data: Path, preds: dict) -> tuple[dict, list]:
@@ -108,9 +110,11 @@ def main() -> None:
     ap.add_argument("--out", required=True, type=Path)
     ap.add_argument("--selfcal", action="store_true", help="also every method after the albedo-colour "
                     "self-calibration (msps_render/models/selfcal.py)")
+    ap.add_argument("--refine", action="store_true", help="also every network with the Lambertian refinement "
+                    "after it (msps_render/models/refine.py)")
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
-    preds = _predictors(a.model, a.selfcal)
+    preds = _predictors(a.model, a.selfcal, a.refine)
     all_res, md = [], []
     for d in a.data:
         res, shown = report(d, preds)

@@ -54,7 +54,10 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
              max_patches: Optional[int] = typer.Option(None, help="limit per condition"),
              selfcal: bool = typer.Option(False, "--selfcal", help="also score every method after the object-level "
                                                "albedo-colour self-calibration (a column NAME+selfcal each; "
-                                               "models/selfcal.py, docs/appearance.md)")):
+                                               "models/selfcal.py, docs/appearance.md)"),
+             refine: bool = typer.Option(False, "--refine", help="also score every network with the Lambertian "
+                                         "refinement after it (a column NAME+refine each; objects of one "
+                                         "albedo only; models/refine.py)")):
     """Angular-error statistics, SSIM, per-object table (whole frames), robustness, for one method or
     several compared on the same frames: metrics.json, table.md (every method a column, 95 % CIs),
     error_hist.png, per_object.csv/.png (frames stored), robustness.png (sweeps)."""
@@ -63,7 +66,7 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out, "report")
-    r = evaluate(data, out, max_patches=max_patches, methods=resolve_methods(checkpoint, method, selfcal))
+    r = evaluate(data, out, max_patches=max_patches, methods=resolve_methods(checkpoint, method, selfcal, refine))
     for line in summary_lines(r):
         typer.echo(line)
     typer.echo("wrote " + ", ".join(r["files"]))
@@ -91,7 +94,10 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
                 selfcal: bool = typer.Option(False, "--selfcal", help="first divide out the object's albedo "
                                              "colour when one uniform colour fits it clearly better than grey "
                                              "(needs the rig: --calibration or the paper's lights; "
-                                             "models/selfcal.py)")):
+                                             "models/selfcal.py)"),
+                refine: bool = typer.Option(False, "--refine", help="refine the network's normals by the "
+                                            "Lambertian closed form where the image agrees with it (objects "
+                                            "of one albedo; needs the rig; models/refine.py)")):
     """Normal map of a whole image (overlapping 40x40 tiles, blended) or by the Lambertian baseline,
     with a panel PNG (input, prediction, and with --normal-gt the truth and the angular error)."""
     from msps_render.models.predict import out_paths, predict_main
@@ -99,7 +105,8 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
 
     check_writable(out.parent)
     files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk,
-                         linear=linear, normal_gt=normal_gt, selfcal=selfcal)
+                         linear=linear, normal_gt=normal_gt, selfcal=selfcal,
+                         refine=refine)
     if normal_gt:
         m = json.loads(out_paths(out)["metrics"].read_text())
         if m.get("n_pixels"):
@@ -132,7 +139,9 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
                    threads: Optional[int] = typer.Option(None, help="torch CPU threads"),
                    selfcal: bool = typer.Option(False, "--selfcal", help="also score every method after the object-level "
                                                "albedo-colour self-calibration (a column NAME+selfcal each; "
-                                               "models/selfcal.py, docs/appearance.md)")):
+                                               "models/selfcal.py, docs/appearance.md)"),
+                   refine: bool = typer.Option(False, "--refine", help="also score every network with the "
+                                               "Lambertian refinement after it (NAME+refine; models/refine.py)")):
     """Score checkpoints and calibrated Lambertian PS on real captures (validation only: never train on
     real images).  Each folder is composed as `msps compose` does (the three captures nearest the
     layout, divided by light intensity, mixed by the crosstalk); the angular error is taken over the
@@ -154,7 +163,8 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
 
         torch.set_num_threads(threads)
     bench = run_bench_real(captures, out, checkpoint, slant, t, M, skip, srgb,
-                           warn=lambda w: typer.echo(f"warning: {w}", err=True), selfcal=selfcal)
+                           warn=lambda w: typer.echo(f"warning: {w}", err=True), selfcal=selfcal,
+                           refine=refine)
     for line in summary_table(bench):
         typer.echo(line)
     typer.echo(f"wrote {out}/results.json, results.md, figure.png and per-object maps "

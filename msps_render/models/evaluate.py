@@ -30,7 +30,7 @@ from msps_render.dataset import Manifest, load_manifest
 from msps_render.errors import InputError
 from msps_render.models.baseline import lambertian_ps
 from msps_render.models.metrics import angular_error_deg, error_stats
-from msps_render.models import selfcal
+from msps_render.models import refine, selfcal
 from msps_render.models.report import (PER_OBJECT_NOTE, error_histogram, per_object_detail, write_plots,
                                        write_tables)
 
@@ -62,16 +62,18 @@ class Method:
     info: dict = field(default_factory=dict)
     model: object = None
     selfcal: bool = False  # divide out the frame's fitted albedo colour first (models/selfcal.py)
+    refine: bool = False  # refine the network's normals by the Lambertian closed form (models/refine.py)
 
-    def patches(self, b, scale: np.ndarray | None = None) -> np.ndarray:
-        """(B, 3, P, P) normals for a batch dict; `scale` (B, 3): each patch's frame-level colour factor."""
+    def patches(self, b, fits: list["FrameFit"] | None = None) -> np.ndarray:
+        """(B, 3, P, P) normals for a batch dict; `fits`: each patch's frame-level fits (`frame_fits`)."""
         image = b["image"]
+        if (self.selfcal or self.refine) and fits is None:
+            raise ValueError(f"{self.name}: self-calibration and refinement need the frames' fits")
         if self.selfcal:
-            if scale is None:
-                raise ValueError(f"{self.name}: self-calibration needs the frames' colour factors")
             import torch
 
-            image = image * torch.from_numpy(np.asarray(scale, np.float32))[:, :, None, None]
+            scale = np.stack([f.scale for f in fits]).astype(np.float32)
+            image = image * torch.from_numpy(scale)[:, :, None, None]
         if self.kind == LAMBERTIAN:
             img = image.numpy().transpose(0, 2, 3, 1)
             out = np.stack([lambertian_ps(img[i], b["light_dirs"][i].numpy(), b["crosstalk"][i].numpy())
@@ -81,7 +83,23 @@ class Method:
 
         with torch.no_grad():
             pred, _ = self.model(image, b["mask"], b["crosstalk"] @ b["light_dirs"])
-        return pred.numpy()
+        pred = pred.numpy()
+        if self.refine:
+            pred = self._refine_patches(image.numpy(), pred, b, fits)
+        return pred
+
+    def _refine_patches(self, image: np.ndarray, pred: np.ndarray, b, fits: list["FrameFit"]) -> np.ndarray:
+        """Each patch refined with its frame's albedo estimate, as the whole frame would be."""
+        out = pred.copy()
+        for i, f in enumerate(fits):
+            mk = b["mask"][i, 0].numpy() > 0
+            n, n3, n2 = refine.refine_pixels(image[i].transpose(1, 2, 0)[mk], pred[i].transpose(1, 2, 0)[mk],
+                                             b["light_dirs"][i].numpy(), b["crosstalk"][i].numpy(),
+                                             f.albedo_selfcal if self.selfcal else f.albedo)
+            if n3 or n2:
+                o = out[i].transpose(1, 2, 0)  # a view: writes go to out
+                o[mk] = n
+        return out
 
     def frame(self, fr) -> np.ndarray:
         image = selfcal.self_calibrated(fr.image, fr.mask, fr.light_dirs, fr.crosstalk) if self.selfcal \
@@ -90,7 +108,10 @@ class Method:
             return lambertian_ps(image, fr.light_dirs, fr.crosstalk, fr.mask)
         from msps_render.models.predict import predict_image
 
-        return predict_image(self.model, image, fr.mask, rig=fr.crosstalk @ fr.light_dirs)
+        n = predict_image(self.model, image, fr.mask, rig=fr.crosstalk @ fr.light_dirs)
+        if self.refine:
+            n, _ = refine.refine_normals(image, fr.mask, n, fr.light_dirs, fr.crosstalk)
+        return n
 
 
 def with_selfcal(methods: list[Method]) -> list[Method]:
@@ -101,17 +122,39 @@ def with_selfcal(methods: list[Method]) -> list[Method]:
     return list(methods) + twins
 
 
-def frame_colour_scales(data: Path, condition: str) -> dict[tuple[str, int], np.ndarray]:
-    """(shard file name, frame index) -> the frame's colour factor, for scoring patches after self-calibration."""
+def with_refine(methods: list[Method]) -> list[Method]:
+    """Each method, then each network again with the Lambertian refinement after it ("NAME+refine")."""
+    twins = [replace(m, name=m.name + refine.SUFFIX, refine=True,
+                     info={**m.info, "description": f"{m.info.get('description', m.name)}, {refine.DESCRIPTION}"})
+             for m in methods if m.kind == "net"]
+    return list(methods) + twins
+
+
+@dataclass(frozen=True)
+class FrameFit:
+    """A frame's whole-object estimates that its patches are scored with."""
+
+    scale: np.ndarray  # (3,) the self-calibration's colour factor (models/selfcal.py)
+    albedo: refine.ObjectAlbedo  # the refinement's albedo estimate on the image as rendered
+    albedo_selfcal: refine.ObjectAlbedo  # ... after the colour factor
+
+
+def frame_fits(data: Path, condition: str, why: str = "--selfcal") -> dict[tuple[str, int], FrameFit]:
+    """(shard file name, frame index) -> the frame's fits, for scoring patches as whole frames are."""
     from msps_render.data import iter_frames
 
     try:
         frames = list(iter_frames(data, condition=condition))
     except InputError:
-        raise InputError(data, "--selfcal fits each object's colour on its whole frame; this dataset has no "
+        raise InputError(data, f"{why} fits each object on its whole frame; this dataset has no "
                                "whole frames (render a preset with store_frames = true)") from None
-    return {(fr.shard, fr.index): selfcal.fit_albedo_colour(fr.image, fr.mask, fr.light_dirs, fr.crosstalk).scale
-            for fr in frames}
+    fits = {}
+    for fr in frames:
+        scale = selfcal.fit_albedo_colour(fr.image, fr.mask, fr.light_dirs, fr.crosstalk).scale
+        fits[(fr.shard, fr.index)] = FrameFit(
+            scale, refine.estimate_albedo(fr.image, fr.mask, fr.light_dirs, fr.crosstalk),
+            refine.estimate_albedo(fr.image * scale, fr.mask, fr.light_dirs, fr.crosstalk))
+    return fits
 
 
 def lambertian_method() -> Method:
@@ -130,7 +173,7 @@ def checkpoint_method(path: str | Path, name: str | None = None) -> Method:
                    "val_mae_deg": ck.get("val_mae_deg")}, model)
 
 
-def resolve_methods(checkpoints=(), methods=(), selfcal: bool = False) -> list[Method]:
+def resolve_methods(checkpoints=(), methods=(), selfcal: bool = False, refine: bool = False) -> list[Method]:
     """`msps eval --checkpoint [NAME=]PATH ... --method net|lambertian ...` -> the methods, checkpoints first.
 
     `net` stands for the checkpoints given (the shipped one when none is); checkpoints imply `net`, so
@@ -168,7 +211,8 @@ def resolve_methods(checkpoints=(), methods=(), selfcal: bool = False) -> list[M
         out.append(m)
     if LAMBERTIAN in kinds:
         out.append(lambertian_method())
-    return with_selfcal(out) if selfcal else out
+    out = with_selfcal(out) if selfcal else out
+    return with_refine(out) if refine else out
 
 
 def bootstrap_ci(num: np.ndarray, den: np.ndarray, key: str, n_boot: int = N_BOOT,
@@ -226,17 +270,18 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
         usum: dict = defaultdict(lambda: np.zeros(len(methods)))
         upix: dict = defaultdict(float)
         seen = 0
-        scales = frame_colour_scales(data, cond) if any(m.selfcal for m in methods) else None
+        fits = frame_fits(data, cond, "--selfcal" if any(m.selfcal for m in methods) else "--refine") \
+            if any(m.selfcal or m.refine for m in methods) else None
         for b in make_loader(ds, 64, shuffle=False):
             g = b["normal"].numpy()
             mk = b["mask"].numpy()
             keys = list(zip(b["shard"].tolist(), b["frame"].tolist()))
-            scale = None if scales is None else np.stack([scales[(ds.shards[s][0].name, f)] for s, f in keys])
+            bfits = None if fits is None else [fits[(ds.shards[s][0].name, f)] for s, f in keys]
             pix = mk[:, 0].sum((1, 2))
             for k, px in zip(keys, pix):
                 upix[k] += float(px)
             for j, m in enumerate(methods):
-                p = m.patches(b, scale)
+                p = m.patches(b, bfits)
                 e = angular_error_deg(p.transpose(0, 2, 3, 1), g.transpose(0, 2, 3, 1))
                 errs[m.name].append(e[mk[:, 0] > 0])
                 ssims[m.name] += _ssim_masked(p, g, mk) * len(p)

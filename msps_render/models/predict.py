@@ -196,7 +196,7 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
                  method: str = "net", mask: str | Path | None = None, calibration: str | Path | None = None,
                  light_dirs: str | None = None, crosstalk: str | None = None, warn=None,
                  linear: bool | None = None, normal_gt: str | Path | None = None, panel: bool = True,
-                 selfcal: bool = False) -> list[Path]:
+                 selfcal: bool = False, refine: bool = False) -> list[Path]:
     """Write OUT.npy (H, W, 3 normals), OUT.png (visualisation) and OUT-panel.png (input, prediction;
     with `normal_gt` also the ground truth and the error map, and OUT-metrics.json with the MAE).
 
@@ -204,6 +204,8 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
     the paper's lights for lack of a calibration, and when the given lights differ from the geometry
     the network was trained for (the network takes no light input)."""
     warn = warn or _warn_stderr
+    if refine and method == "lambertian":
+        raise InputError("--refine", "refines a network's normals; the Lambertian baseline has nothing to refine")
     img, mk = read_inputs(image, mask, linear, warn)
     gt = read_normal_gt(normal_gt, img.shape[:2]) if normal_gt else None  # before any work: fail early
     calibrated = bool(calibration or light_dirs or crosstalk)
@@ -239,6 +241,12 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
             raise InputError(image, f"image is {img.shape[1]}x{img.shape[0]}; the network needs at least 40x40")
         n = predict_image(model, img_in, mk, rig=M @ L)
         label = f"net ({Path(ck).name})"
+        if refine:
+            from msps_render.models.refine import refine_normals
+
+            n, rstats = refine_normals(img_in, mk, n, L, M)
+            label += f" +refine ({rstats.n_three + rstats.n_two:,} px)" if rstats.n_three + rstats.n_two \
+                else " +refine (not one albedo: kept)"
     if fit is not None:
         label += " +selfcal " + ("x" + "/".join(f"{v:.2f}" for v in fit.scale) if fit.applied else "(grey kept)")
     paths = out_paths(out)
@@ -259,6 +267,8 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
                    "checkpoint": None if method == "lambertian" else str(ck), **stats,
                    "selfcal": None if fit is None else {"applied": fit.applied, "scale": fit.scale.tolist(),
                                                         "grey_rms": fit.grey_rms, "colour_rms": fit.colour_rms},
+                   "refine": None if not refine else {"n_three": rstats.n_three, "n_two": rstats.n_two,
+                                                      "rho": rstats.albedo.rho, "uniform": rstats.albedo.uniform},
                    "n_mask_pixels": int(mk.sum()), "n_left_out": int((mk & ~valid).sum())}
         paths["metrics"].write_text(json.dumps(metrics, indent=1))
         title += (f" — MAE {stats['mae_deg']:.2f}° over {stats['n_pixels']:,} px" if stats["n_pixels"]

@@ -210,6 +210,24 @@ def with_selfcal(methods: list[Method]) -> list[Method]:
     return list(methods) + [twin(m) for m in methods]
 
 
+def with_refine(methods: list[Method]) -> list[Method]:
+    """Each method, then each network again with the Lambertian refinement after it (models/refine.py)."""
+    from msps_render.models import refine, selfcal
+
+    def twin(m: Method) -> Method:
+        calibrated = m.name.endswith(selfcal.SUFFIX)
+
+        def predict(o: RealObject) -> np.ndarray:
+            img = selfcal.self_calibrated(o.image, o.mask, o.light_dirs, o.crosstalk) if calibrated else o.image
+            return refine.refine_normals(img, o.mask, m.predict(o), o.light_dirs, o.crosstalk)[0]
+
+        return Method(m.name + refine.SUFFIX, predict,
+                      {**m.info, "kind": f"{m.info.get('kind', m.name)}, {refine.DESCRIPTION}"}, m.warnings)
+
+    return list(methods) + [twin(m) for m in methods if m.name != LAMBERTIAN and
+                            not m.name.startswith(LAMBERTIAN + "+")]
+
+
 def net_method(name: str, checkpoint: str | Path) -> Method:
     """A dual-cue checkpoint through whole-image tiled prediction (`predict_image`)."""
     from msps_render.calibration import geometry_warnings
@@ -416,7 +434,7 @@ def write_report(bench: RealBench, objects: list[RealObject], out: Path, setting
 
 def run_bench_real(folders, out: str | Path, checkpoints=(), slant_deg: float = 30.0,
                    tilts_deg=(0.0, 120.0, 240.0), crosstalk: np.ndarray | None = None, skip=(),
-                   srgb: bool = False, warn=None, selfcal: bool = False) -> RealBench:
+                   srgb: bool = False, warn=None, selfcal: bool = False, refine: bool = False) -> RealBench:
     """Validate OUT and every folder, load every checkpoint, evaluate, then write OUT all-or-nothing."""
     from msps_render.calibration import PAPER_CROSSTALK
     from msps_render.io.staging import check_new_out, staged_dir
@@ -437,10 +455,12 @@ def run_bench_real(folders, out: str | Path, checkpoints=(), slant_deg: float = 
     methods = [net_method(n, p) for n, p in specs] + [lambertian_method()]
     if selfcal:
         methods = with_selfcal(methods)
+    if refine:
+        methods = with_refine(methods)
     bench = evaluate_real(objects, methods, warn)
     settings = {"slant_deg": float(slant_deg), "tilts_deg": [float(t) for t in tilts_deg],
                 "crosstalk": M.tolist(), "srgb": bool(srgb), "skip": [str(s) for s in skip or ()],
-                "selfcal": bool(selfcal)}
+                "selfcal": bool(selfcal), "refine": bool(refine)}
     with staged_dir(out) as stage:
         write_report(bench, objects, stage, settings)
     bench.summary["settings"] = settings
