@@ -124,3 +124,21 @@ A7="$RUNS/lambert/last.pt"
   --checkpoint 7a="$A7" --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --method lambertian \
   --out "$RUNS/eval-7a-unseen-robust-env"
 [ -f "$RUNS/blob-7a.txt" ] || $PY benchmarks/blob_check.py --model 7a="$A7" | tee "$RUNS/blob-7a.txt"
+
+# 7. stage 8 (docs/reproducing.md "Stage 8"): the Lambertian refinement (--refine, no training); thresholds chosen
+#    on whole-frame validation sets (procedural shapes, training materials), then every test set scored once
+for set in val-frames val-frames-grey val-frames-colour; do
+  $MSPS render $set --out "$DATA/$set" --workers 2 $R
+done
+[ -f "$RUNS/8-valsweep.json" ] || $PY benchmarks/refine_sweep.py --data "$DATA/val-frames" --data "$DATA/val-frames-grey" \
+  --data "$DATA/val-frames-colour" --model models/dualcue-cpu-v0.4.pt --out "$RUNS/8-valsweep.json"
+[ -f "$RUNS/report-refine/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --refine \
+  --data "$DATA/unseen-test-grey" --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" \
+  --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" \
+  --model v0.4=models/dualcue-cpu-v0.4.pt --model 6a=models/dualcue-cpu-colour.pt --out "$RUNS/report-refine"
+[ -f "$RUNS/real-refine/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-refine" \
+  --selfcal --refine --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --checkpoint 6a=models/dualcue-cpu-colour.pt
+[ -f "$RUNS/eval-refine-env/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
+  --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --method lambertian --out "$RUNS/eval-refine-env"
+[ -f "$RUNS/assumed-rig/assumed_rig.json" ] || $PY benchmarks/assumed_rig.py --data "$DATA/unseen-rig-crosstalk" \
+  --data "$DATA/unseen-rig-jitter" --model v0.4=models/dualcue-cpu-v0.4.pt --out "$RUNS/assumed-rig"

@@ -524,3 +524,29 @@ def test_lambert_cue_warm_start_and_the_rig_it_needs(tiny_dataset, tmp_path):
     with pytest.raises(InputError, match="different network"):  # the cue and a narrower PCN
         train(load_model_config("cpu", base + ["net.lambert_cue=true", "net.pcn_branch=16"]), tiny_dataset,
               tiny_dataset, tmp_path / "c", progress=False, init=tmp_path / "a" / "last.pt")
+
+
+def test_cue_gain_scales_the_lambert_cue_and_warm_starts_exactly(tiny_dataset, tmp_path):
+    """`net.cue_gain`: the same zero-weight warm start (same output as the old net), the cue multiplied by
+    the gain, and `--init` from a net without the cue accepts a gain that comes with it."""
+    from msps_render.models.net import lambertian_cue, rig_matrix, widen_inputs
+    from msps_render.models.train import load_checkpoint, train
+
+    base = ["train.max_steps=3", "train.val_every=3", "train.batch_size=4", "train.val_max_patches=8"]
+    train(load_model_config("cpu", base), tiny_dataset, tiny_dataset, tmp_path / "a", progress=False)
+    old, _, ck = load_checkpoint(tmp_path / "a" / "last.pt")
+    cfg = load_model_config("cpu", ["net.lambert_cue=true", "net.cue_gain=10"]).net_config()
+    assert cfg.cue_gain == 10.0
+    wide = DualCueNet(cfg).eval()
+    widen_inputs(wide, ck["model"])
+    x = torch.rand(2, 3, 40, 40)
+    rig = rig_matrix(np.eye(3) * 0.5 + 0.3, np.eye(3))
+    seen = {}
+    wide.pcn.obs.register_forward_hook(lambda mod, inp, out: seen.update(obs=inp[0]))  # returns None
+    with torch.no_grad():
+        assert torch.equal(old(x)[0], wide(x, None, rig)[0])
+    mask = (x.sum(1, keepdim=True) > 0).to(x.dtype)
+    torch.testing.assert_close(seen["obs"][:, 3:], 10.0 * lambertian_cue(x, mask, rig))
+    tuned = load_model_config("cpu", base + ["net.lambert_cue=true", "net.cue_gain=10", "train.freeze_bn=true"])
+    train(tuned, tiny_dataset, tiny_dataset, tmp_path / "b", progress=False, init=tmp_path / "a" / "last.pt")
+    assert load_checkpoint(tmp_path / "b" / "last.pt")[1].net.cue_gain == 10.0

@@ -37,6 +37,7 @@ class NetConfig:
     chroma_cue: bool = False  # add each channel divided by its own patch mean as a second input
     lambert_cue: bool = False  # give the PCN the calibrated Lambertian normal and its unit-length residual
     lambert_scn: bool = False  # ... and the SCN's U-Net too (beside the colour branches' features)
+    cue_gain: float = 1.0  # the Lambertian cue is multiplied by this: its zero-initialised weights learn this much faster
 
     def __post_init__(self):
         if self.mode not in ("dual", "scn", "pcn"):
@@ -204,7 +205,7 @@ class DualCueNet(nn.Module):
         if self.needs_rig:
             if rig is None:
                 raise ValueError("this network takes the rig (crosstalk @ light_dirs): it has net.lambert_cue")
-            lam = lambertian_cue(image, mask, rig)
+            lam = lambertian_cue(image, mask, rig) * self.cfg.cue_gain
         coarse = self.scn(x, lam if self.cfg.lambert_scn else None) if self.scn is not None else None
         if self.pcn is None:
             return coarse, coarse

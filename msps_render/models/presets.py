@@ -25,6 +25,9 @@ class NetSection(StrictModel):
                                                  "light directions and crosstalk; docs/reproducing.md stage 7)")
     lambert_scn: bool = Field(False, description="feed the same Lambertian cue to the SCN's U-Net as well "
                                                  "(beside the colour branches' features; needs the rig)")
+    cue_gain: float = Field(1.0, gt=0, description="multiplies the Lambertian cue: warm-started at zero weight "
+                                                   "under Adam, its weights then move this many times faster "
+                                                   "(docs/reproducing.md stage 7b)")
 
 
 class TrainSection(StrictModel):
@@ -65,7 +68,7 @@ class ModelConfig(StrictModel):
         n = self.net
         return NetConfig(branch=n.branch, unet=tuple(n.unet), pcn_branch=n.pcn_branch, pcn=tuple(n.pcn), mode=n.mode,
                          chroma_cue=n.chroma_cue, lambert_cue=n.lambert_cue,
-                         lambert_scn=n.lambert_scn)
+                         lambert_scn=n.lambert_scn, cue_gain=n.cue_gain)
 
 
 def load_model_config(path_or_name: str | Path, overrides: list[str] = ()) -> ModelConfig:

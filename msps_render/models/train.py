@@ -169,7 +169,10 @@ def _adds_input_cues(old, new) -> bool:
     """`new` is `old` with one or more input cues switched on (and nothing else changed)."""
     added = [c for c in INPUT_CUES if getattr(new, c) and not getattr(old, c)]
     removed = [c for c in INPUT_CUES if getattr(old, c) and not getattr(new, c)]
-    return bool(added) and not removed and old.model_copy(update={c: True for c in added}) == new
+    update = {c: True for c in added}
+    if "lambert_cue" in added or "lambert_scn" in added:
+        update["cue_gain"] = new.cue_gain  # the gain comes with the cue
+    return bool(added) and not removed and old.model_copy(update=update) == new
 
 
 def batch_rig(batch: dict) -> torch.Tensor:
