@@ -142,3 +142,13 @@ done
   --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --method lambertian --out "$RUNS/eval-refine-env"
 [ -f "$RUNS/assumed-rig/assumed_rig.json" ] || $PY benchmarks/assumed_rig.py --data "$DATA/unseen-rig-crosstalk" \
   --data "$DATA/unseen-rig-jitter" --model v0.4=models/dualcue-cpu-v0.4.pt --out "$RUNS/assumed-rig"
+# stage 7b (measured, not shipped): 7a plus net.cue_gain=10 (rule in runs/7b-decision.txt), 45-minute budget
+resume=""; [ -f "$RUNS/lambert-gain/last.pt" ] && resume="--resume"
+$MSPS train cpu --threads 2 --data "$DATA/train-colour-mixed" --data "$DATA/train-colour-env" --data "$DATA/train-grey-30" \
+  --data "$DATA/blobs-48" --val "$DATA/val" --init models/dualcue-cpu-v0.4.pt --out "$RUNS/lambert-gain" $resume \
+  --set net.lambert_cue=true --set net.cue_gain=10 --set train.freeze_bn=true --set train.shuffle_window=0 \
+  --set train.cache=true --set train.max_minutes=45 --set train.max_steps=9388 --set train.lr=2e-4 \
+  --set train.val_every=500 --set train.val_max_patches=1500
+[ -f "$RUNS/report-7b/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --refine --data "$DATA/unseen-test-grey" \
+  --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" \
+  --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" --model 7b="$RUNS/lambert-gain/last.pt" --out "$RUNS/report-7b"
