@@ -228,3 +228,20 @@ def test_diligent_numbers_reproduce(tmp_path):
         n = predict_image(model, raw.astype(np.float32), obj.mask)
         mae = float(angular_error_deg(n[obj.valid], obj.normal_gt[obj.valid]).mean())
         assert abs(mae - DILIGENT_NET_UNMASKED[obj.name]) < 0.1, (obj.name, mae)
+
+
+def test_selfcal_and_refine_columns(tmp_path):
+    """`--selfcal --refine`: a refined twin for each network (none for the baseline); this sphere's albedo
+    varies across it, so the one-albedo test refuses it and the refined columns equal the network's."""
+    make_capture(tmp_path / "aPNG", seed=1)
+    out = tmp_path / "out"
+    r = cli("bench-real", tmp_path / "aPNG", "--out", out, "--selfcal", "--refine", "--threads", "1",
+            env_extra={"OMP_NUM_THREADS": "1"})
+    assert r.returncode == 0, r.stderr
+    res = json.loads((out / "results.json").read_text())
+    assert list(res["methods"]) == ["net", "lambertian", "net+selfcal", "lambertian+selfcal", "net+refine",
+                                    "net+selfcal+refine"]
+    a = res["objects"]["a"]["methods"]
+    assert a["net+refine"]["mae_deg"] == a["net"]["mae_deg"]
+    assert a["net+selfcal+refine"]["mae_deg"] == a["net+selfcal"]["mae_deg"]
+    assert res["settings"]["refine"] is True

@@ -74,6 +74,8 @@ class Method:
     predict: Callable[[RealObject], np.ndarray]
     info: dict
     warnings: Callable[[RealObject], list[str]] = lambda obj: []
+    network: bool = True  # a network's normals (what --refine refines); False for the Lambertian baseline
+    selfcal: bool = False  # predicts on the self-calibrated image
 
 
 @dataclass
@@ -190,7 +192,8 @@ def lambertian_method() -> Method:
     from msps_render.models.baseline import lambertian_ps
 
     return Method(LAMBERTIAN, lambda o: lambertian_ps(o.image, o.light_dirs, o.crosstalk, o.mask),
-                  {"kind": "calibrated Lambertian photometric stereo (measured light directions, crosstalk)"})
+                  {"kind": "calibrated Lambertian photometric stereo (measured light directions, crosstalk)"},
+                  network=False)
 
 
 def with_selfcal(methods: list[Method]) -> list[Method]:
@@ -205,7 +208,8 @@ def with_selfcal(methods: list[Method]) -> list[Method]:
             return m.predict(replace(o, image=img))
 
         return Method(m.name + selfcal.SUFFIX, predict,
-                      {**m.info, "kind": f"{m.info.get('kind', m.name)}, {selfcal.DESCRIPTION}"}, m.warnings)
+                      {**m.info, "kind": f"{m.info.get('kind', m.name)}, {selfcal.DESCRIPTION}"}, m.warnings,
+                      network=m.network, selfcal=True)
 
     return list(methods) + [twin(m) for m in methods]
 
@@ -215,17 +219,15 @@ def with_refine(methods: list[Method]) -> list[Method]:
     from msps_render.models import refine, selfcal
 
     def twin(m: Method) -> Method:
-        calibrated = m.name.endswith(selfcal.SUFFIX)
-
         def predict(o: RealObject) -> np.ndarray:
-            img = selfcal.self_calibrated(o.image, o.mask, o.light_dirs, o.crosstalk) if calibrated else o.image
+            img = selfcal.self_calibrated(o.image, o.mask, o.light_dirs, o.crosstalk) if m.selfcal else o.image
             return refine.refine_normals(img, o.mask, m.predict(o), o.light_dirs, o.crosstalk)[0]
 
         return Method(m.name + refine.SUFFIX, predict,
-                      {**m.info, "kind": f"{m.info.get('kind', m.name)}, {refine.DESCRIPTION}"}, m.warnings)
+                      {**m.info, "kind": f"{m.info.get('kind', m.name)}, {refine.DESCRIPTION}"}, m.warnings,
+                      network=True, selfcal=m.selfcal)
 
-    return list(methods) + [twin(m) for m in methods if m.name != LAMBERTIAN and
-                            not m.name.startswith(LAMBERTIAN + "+")]
+    return list(methods) + [twin(m) for m in methods if m.network]
 
 
 def net_method(name: str, checkpoint: str | Path) -> Method:
