@@ -25,29 +25,33 @@ from pathlib import Path
 import numpy as np
 
 
-def _predictors(models: list[str], selfcal: bool = False, refine: bool = False):
+def _predictors(models: list[str], selfcal: bool = False, refine: bool = False, mirror: bool = False):
     """NAME=PATH checkpoints and the baseline, as `msps eval` loads them (msps_render.models.evaluate);
     with `selfcal`, each again after the albedo-colour self-calibration (NAME+selfcal); with `refine`,
     each network again with the Lambertian refinement (NAME+refine, NAME+selfcal+refine)."""
-    from msps_render.models.evaluate import checkpoint_method, lambertian_method, with_refine, with_selfcal
+    from msps_render.models.evaluate import (checkpoint_method, lambertian_method, with_mirror, with_refine,
+                                             with_selfcal)
 
     methods = [checkpoint_method(path, name) for name, path in (spec.split("=", 1) for spec in models)]
     methods.append(lambertian_method())
     methods = with_selfcal(methods) if selfcal else methods
-    return {m.name: m.frame for m in (with_refine(methods) if refine else methods)}
+    methods = with_mirror(methods) if mirror else methods
+    return with_refine(methods) if refine else methods
 
 
-def report(data: Path, preds: dict) -> tuple[dict, list]:
+def report(data: Path, methods: list) -> tuple[dict, list]:
     from msps_render.data import iter_frames
+    from msps_render.models.evaluate import frame_predictions
     from msps_render.models.metrics import angular_error_deg
+
+    preds = [m.name for m in methods]
 
     per_obj = {k: defaultdict(list) for k in preds}
     pooled = {k: [] for k in preds}
     shown: dict[str, dict] = {}
     for fr in iter_frames(data):
         m = fr.mask.astype(bool)
-        for name, f in preds.items():
-            n = f(fr)
+        for name, n in zip(preds, frame_predictions(methods, fr)):
             e = angular_error_deg(n[m], fr.normal[m])
             per_obj[name][fr.object].append(float(e.mean()))
             pooled[name].append(e)
@@ -112,12 +116,14 @@ def main() -> None:
                     "self-calibration (msps_render/models/selfcal.py)")
     ap.add_argument("--refine", action="store_true", help="also every network with the Lambertian refinement "
                     "after it (msps_render/models/refine.py)")
+    ap.add_argument("--mirror", action="store_true", help="also every network averaged with its prediction of "
+                    "the mirrored image (msps_render/models/symmetry.py)")
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
-    preds = _predictors(a.model, a.selfcal, a.refine)
+    methods = _predictors(a.model, a.selfcal, a.refine, a.mirror)
     all_res, md = [], []
     for d in a.data:
-        res, shown = report(d, preds)
+        res, shown = report(d, methods)
         all_res.append(res)
         md.append(markdown(res))
         figure(shown, a.out / f"{d.name}.png", f"{d.name}: normal maps (MAE per frame)")

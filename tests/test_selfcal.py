@@ -17,7 +17,7 @@ from cli_helpers import cli, render_tiny
 from msps_render.calibration import PAPER_CROSSTALK, direction_from_slant_tilt
 from msps_render.models.baseline import lambertian_ps, unshadowed
 from msps_render.models.metrics import angular_error_deg
-from msps_render.models.selfcal import ACCEPT, apply_colour_fit, fit_albedo_colour
+from msps_render.models.selfcal import ACCEPT, MIN_SHARE, apply_colour_fit, fit_albedo_colour
 
 L = np.stack([direction_from_slant_tilt(30.0, t) for t in (0.0, 120.0, 240.0)])
 M = PAPER_CROSSTALK
@@ -75,6 +75,21 @@ def test_two_colours_are_not_forced_into_one():
     img = render(n, mask, np.broadcast_to(alb, n.shape))
     fit = fit_albedo_colour(img, mask, L, M)
     assert fit.ratio > ACCEPT and not fit.applied
+
+
+def test_one_material_of_two_is_not_taken_for_the_object():
+    """60 % saturated, 40 % grey: the residual ratio alone accepts a colour fitted to neither (the
+    multi-material false positive of Stage 8); the one-albedo share refuses it (Stage 9)."""
+    n, mask = sphere()
+    alb = np.where((np.arange(96) < 58)[None, :, None], SATURATED, np.full(3, 0.36))
+    img = render(n, mask, np.broadcast_to(alb, n.shape))
+    old = fit_albedo_colour(img, mask, L, M, min_share=0.0)
+    assert old.applied and old.ratio < ACCEPT  # what the gate did before the share condition
+    fit = fit_albedo_colour(img, mask, L, M)
+    assert fit.share < 0.5 < MIN_SHARE and not fit.applied
+    np.testing.assert_array_equal(apply_colour_fit(img, fit), img)
+    one = fit_albedo_colour(render(n, mask, SATURATED), mask, L, M)
+    assert one.applied and one.share > 0.99  # one colour: every lit pixel has the fitted albedo
 
 
 def test_noise_and_few_pixels():

@@ -57,7 +57,10 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
                                                "models/selfcal.py, docs/appearance.md)"),
              refine: bool = typer.Option(False, "--refine", help="also score every network with the Lambertian "
                                          "refinement after it (a column NAME+refine each; objects of one "
-                                         "albedo only; models/refine.py)")):
+                                         "albedo only; models/refine.py)"),
+             mirror: bool = typer.Option(False, "--mirror", help="also score every network averaged with its "
+                                         "prediction of the mirrored image (NAME+mirror; rigs symmetric about an "
+                                         "image axis, as the paper's; models/symmetry.py)")):
     """Angular-error statistics, SSIM, per-object table (whole frames), robustness, for one method or
     several compared on the same frames: metrics.json, table.md (every method a column, 95 % CIs),
     error_hist.png, per_object.csv/.png (frames stored), robustness.png (sweeps)."""
@@ -66,7 +69,7 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out, "report")
-    r = evaluate(data, out, max_patches=max_patches, methods=resolve_methods(checkpoint, method, selfcal, refine))
+    r = evaluate(data, out, max_patches=max_patches, methods=resolve_methods(checkpoint, method, selfcal, refine, mirror))
     for line in summary_lines(r):
         typer.echo(line)
     typer.echo("wrote " + ", ".join(r["files"]))
@@ -97,7 +100,10 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
                                              "models/selfcal.py)"),
                 refine: bool = typer.Option(False, "--refine", help="refine the network's normals by the "
                                             "Lambertian closed form where the image agrees with it (objects "
-                                            "of one albedo; needs the rig; models/refine.py)")):
+                                            "of one albedo; needs the rig; models/refine.py)"),
+                mirror: bool = typer.Option(False, "--mirror", help="average the network's prediction with its "
+                                            "prediction of the mirrored image (2x the time; needs a rig symmetric "
+                                            "about an image axis, as the paper's; models/symmetry.py)")):
     """Normal map of a whole image (overlapping 40x40 tiles, blended) or by the Lambertian baseline,
     with a panel PNG (input, prediction, and with --normal-gt the truth and the angular error)."""
     from msps_render.models.predict import out_paths, predict_main
@@ -106,7 +112,7 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
     check_writable(out.parent)
     files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk,
                          linear=linear, normal_gt=normal_gt, selfcal=selfcal,
-                         refine=refine)
+                         refine=refine, mirror=mirror)
     if normal_gt:
         m = json.loads(out_paths(out)["metrics"].read_text())
         if m.get("n_pixels"):

@@ -30,7 +30,7 @@ from msps_render.dataset import Manifest, load_manifest
 from msps_render.errors import InputError
 from msps_render.models.baseline import lambertian_ps
 from msps_render.models.metrics import angular_error_deg, error_stats
-from msps_render.models import refine, selfcal
+from msps_render.models import refine, selfcal, symmetry
 from msps_render.models.report import (PER_OBJECT_NOTE, error_histogram, per_object_detail, write_plots,
                                        write_tables)
 
@@ -63,9 +63,21 @@ class Method:
     model: object = None
     selfcal: bool = False  # divide out the frame's fitted albedo colour first (models/selfcal.py)
     refine: bool = False  # refine the network's normals by the Lambertian closed form (models/refine.py)
+    mirror: bool = False  # average with the prediction of the mirrored image (models/symmetry.py)
+
+    @property
+    def base_key(self) -> tuple:
+        """Methods with the same key predict the same normals before the refinement: a `+refine`
+        twin reuses its base method's prediction (`patch_predictions`, `frame_predictions`)."""
+        return self.kind, id(self.model), self.selfcal, self.mirror
 
     def patches(self, b, fits: list["FrameFit"] | None = None) -> np.ndarray:
         """(B, 3, P, P) normals for a batch dict; `fits`: each patch's frame-level fits (`frame_fits`)."""
+        image, pred = self.unrefined_patches(b, fits)
+        return self.refined_patches(image, pred, b, fits)
+
+    def unrefined_patches(self, b, fits: list["FrameFit"] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(the batch's images as the method sees them, its normals before any refinement)."""
         image = b["image"]
         if (self.selfcal or self.refine) and fits is None:
             raise ValueError(f"{self.name}: self-calibration and refinement need the frames' fits")
@@ -78,18 +90,32 @@ class Method:
             img = image.numpy().transpose(0, 2, 3, 1)
             out = np.stack([lambertian_ps(img[i], b["light_dirs"][i].numpy(), b["crosstalk"][i].numpy())
                             for i in range(len(img))])
-            return out.transpose(0, 3, 1, 2)
+            return image.numpy(), out.transpose(0, 3, 1, 2)
         import torch
 
+        rigs = b["crosstalk"] @ b["light_dirs"]
         with torch.no_grad():
-            pred, _ = self.model(image, b["mask"], b["crosstalk"] @ b["light_dirs"])
-        pred = pred.numpy()
-        if self.refine:
-            pred = self._refine_patches(image.numpy(), pred, b, fits)
-        return pred
+            pred = self.model(image, b["mask"], rigs)[0].numpy()
+        if not self.mirror:
+            return image.numpy(), pred
+        # the batch's mirror images in one pass, each patch by its own rig's symmetry
+        img, mk = image.numpy().transpose(0, 2, 3, 1), b["mask"].numpy()[:, 0]
+        mirrors = [symmetry.require_mirror(b["light_dirs"][i].numpy(), b["crosstalk"][i].numpy())
+                   for i in range(len(img))]
+        x = np.stack([mr.image(im) for mr, im in zip(mirrors, img)]).transpose(0, 3, 1, 2)
+        xm = np.stack([mr.mask(m) for mr, m in zip(mirrors, mk)])[:, None]
+        with torch.no_grad():
+            back = self.model(torch.from_numpy(np.ascontiguousarray(x)), torch.from_numpy(xm), rigs)[0].numpy()
+        back = np.stack([mr.normals_back(n) for mr, n in zip(mirrors, back.transpose(0, 2, 3, 1))])
+        mean = symmetry.unit_mean(pred.transpose(0, 2, 3, 1), back, mk > 0).transpose(0, 3, 1, 2)
+        return image.numpy(), np.where(mk[:, None] > 0, mean, pred)  # outside the mask as predicted
 
-    def _refine_patches(self, image: np.ndarray, pred: np.ndarray, b, fits: list["FrameFit"]) -> np.ndarray:
-        """Each patch refined with its frame's albedo estimate, as the whole frame would be."""
+    def refined_patches(self, image: np.ndarray, pred: np.ndarray, b, fits: list["FrameFit"] | None
+                        ) -> np.ndarray:
+        """Each patch refined with its frame's albedo estimate, as the whole frame would be
+        (`pred` itself when this method does not refine)."""
+        if not self.refine:
+            return pred
         out = pred.copy()
         for i, f in enumerate(fits):
             mk = b["mask"][i, 0].numpy() > 0
@@ -102,16 +128,48 @@ class Method:
         return out
 
     def frame(self, fr) -> np.ndarray:
+        return self.refined_frame(fr, *self.unrefined_frame(fr))
+
+    def unrefined_frame(self, fr) -> tuple[np.ndarray, np.ndarray]:
+        """(the frame's image as the method sees it, its normals before any refinement)."""
         image = selfcal.self_calibrated(fr.image, fr.mask, fr.light_dirs, fr.crosstalk) if self.selfcal \
             else fr.image
         if self.kind == LAMBERTIAN:
-            return lambertian_ps(image, fr.light_dirs, fr.crosstalk, fr.mask)
+            return image, lambertian_ps(image, fr.light_dirs, fr.crosstalk, fr.mask)
         from msps_render.models.predict import predict_image
 
-        n = predict_image(self.model, image, fr.mask, rig=fr.crosstalk @ fr.light_dirs)
-        if self.refine:
-            n, _ = refine.refine_normals(image, fr.mask, n, fr.light_dirs, fr.crosstalk)
-        return n
+        rig = fr.crosstalk @ fr.light_dirs
+        if not self.mirror:
+            return image, predict_image(self.model, image, fr.mask, rig=rig)
+        return image, symmetry.mirror_ensemble(lambda x, m: predict_image(self.model, x, m, rig=rig), image,
+                                               fr.mask, symmetry.require_mirror(fr.light_dirs, fr.crosstalk))
+
+    def refined_frame(self, fr, image: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        if not self.refine:
+            return normals
+        return refine.refine_normals(image, fr.mask, normals, fr.light_dirs, fr.crosstalk)[0]
+
+
+def patch_predictions(methods: list[Method], b, fits: list["FrameFit"] | None) -> list[np.ndarray]:
+    """Each method's (B, 3, P, P) normals for one batch; the network runs once per `base_key`."""
+    base: dict[tuple, tuple] = {}
+    out = []
+    for m in methods:
+        if m.base_key not in base:
+            base[m.base_key] = m.unrefined_patches(b, fits)
+        out.append(m.refined_patches(*base[m.base_key], b, fits))
+    return out
+
+
+def frame_predictions(methods: list[Method], fr) -> list[np.ndarray]:
+    """Each method's (H, W, 3) normals for one whole frame; the network runs once per `base_key`."""
+    base: dict[tuple, tuple] = {}
+    out = []
+    for m in methods:
+        if m.base_key not in base:
+            base[m.base_key] = m.unrefined_frame(fr)
+        out.append(m.refined_frame(fr, *base[m.base_key]))
+    return out
 
 
 def with_selfcal(methods: list[Method]) -> list[Method]:
@@ -119,6 +177,14 @@ def with_selfcal(methods: list[Method]) -> list[Method]:
     twins = [replace(m, name=m.name + selfcal.SUFFIX, selfcal=True,
                      info={**m.info, "description": f"{m.info.get('description', m.name)}, {selfcal.DESCRIPTION}"})
              for m in methods]
+    return list(methods) + twins
+
+
+def with_mirror(methods: list[Method]) -> list[Method]:
+    """Each method, then each network again averaged with its mirror-image prediction ("NAME+mirror")."""
+    twins = [replace(m, name=m.name + symmetry.SUFFIX, mirror=True,
+                     info={**m.info, "description": f"{m.info.get('description', m.name)}, {symmetry.DESCRIPTION}"})
+             for m in methods if m.kind == "net"]
     return list(methods) + twins
 
 
@@ -173,7 +239,8 @@ def checkpoint_method(path: str | Path, name: str | None = None) -> Method:
                    "val_mae_deg": ck.get("val_mae_deg")}, model)
 
 
-def resolve_methods(checkpoints=(), methods=(), selfcal: bool = False, refine: bool = False) -> list[Method]:
+def resolve_methods(checkpoints=(), methods=(), selfcal: bool = False, refine: bool = False,
+                    mirror: bool = False) -> list[Method]:
     """`msps eval --checkpoint [NAME=]PATH ... --method net|lambertian ...` -> the methods, checkpoints first.
 
     `net` stands for the checkpoints given (the shipped one when none is); checkpoints imply `net`, so
@@ -212,6 +279,7 @@ def resolve_methods(checkpoints=(), methods=(), selfcal: bool = False, refine: b
     if LAMBERTIAN in kinds:
         out.append(lambertian_method())
     out = with_selfcal(out) if selfcal else out
+    out = with_mirror(out) if mirror else out
     return with_refine(out) if refine else out
 
 
@@ -280,8 +348,7 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
             pix = mk[:, 0].sum((1, 2))
             for k, px in zip(keys, pix):
                 upix[k] += float(px)
-            for j, m in enumerate(methods):
-                p = m.patches(b, bfits)
+            for j, (m, p) in enumerate(zip(methods, patch_predictions(methods, b, bfits))):
                 e = angular_error_deg(p.transpose(0, 2, 3, 1), g.transpose(0, 2, 3, 1))
                 errs[m.name].append(e[mk[:, 0] > 0])
                 ssims[m.name] += _ssim_masked(p, g, mk) * len(p)
@@ -313,8 +380,7 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
             rows = {n: [] for n in names}
             all_err = {n: [] for n in names}
             for fr in frames:
-                for m in methods:
-                    n = m.frame(fr)
+                for m, n in zip(methods, frame_predictions(methods, fr)):
                     e = angular_error_deg(n[fr.mask], fr.normal[fr.mask])
                     all_err[m.name].append(e)
                     rows[m.name].append((fr.object, float(e.mean()), int(e.size), float(e.sum())))

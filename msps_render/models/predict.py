@@ -196,7 +196,7 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
                  method: str = "net", mask: str | Path | None = None, calibration: str | Path | None = None,
                  light_dirs: str | None = None, crosstalk: str | None = None, warn=None,
                  linear: bool | None = None, normal_gt: str | Path | None = None, panel: bool = True,
-                 selfcal: bool = False, refine: bool = False) -> list[Path]:
+                 selfcal: bool = False, refine: bool = False, mirror: bool = False) -> list[Path]:
     """Write OUT.npy (H, W, 3 normals), OUT.png (visualisation) and OUT-panel.png (input, prediction;
     with `normal_gt` also the ground truth and the error map, and OUT-metrics.json with the MAE).
 
@@ -206,10 +206,17 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
     warn = warn or _warn_stderr
     if refine and method == "lambertian":
         raise InputError("--refine", "refines a network's normals; the Lambertian baseline has nothing to refine")
+    if mirror and method == "lambertian":
+        raise InputError("--mirror", "averages a network's two predictions; the Lambertian baseline is already "
+                                     "mirror-symmetric")
     img, mk = read_inputs(image, mask, linear, warn)
     gt = read_normal_gt(normal_gt, img.shape[:2]) if normal_gt else None  # before any work: fail early
     calibrated = bool(calibration or light_dirs or crosstalk)
     L, M = load_calibration(calibration, light_dirs, crosstalk)  # validated on both paths
+    if mirror:
+        from msps_render.models.symmetry import mirror_ensemble, require_mirror
+
+        sym = require_mirror(L, M)  # before any work
     fit = None
     if selfcal:
         from msps_render.models.selfcal import apply_colour_fit, fit_albedo_colour
@@ -239,8 +246,11 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
                  "tilts 0/120/240 deg, crosstalk 0.92/0.04)")
         if min(img.shape[:2]) < 40:
             raise InputError(image, f"image is {img.shape[1]}x{img.shape[0]}; the network needs at least 40x40")
-        n = predict_image(model, img_in, mk, rig=M @ L)
-        label = f"net ({Path(ck).name})"
+        if mirror:
+            n = mirror_ensemble(lambda x, m: predict_image(model, x, m, rig=M @ L), img_in, mk, sym)
+        else:
+            n = predict_image(model, img_in, mk, rig=M @ L)
+        label = f"net ({Path(ck).name})" + (" +mirror" if mirror else "")
         if refine:
             from msps_render.models.refine import refine_normals
 
@@ -266,7 +276,8 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
         metrics = {"image": str(image), "normal_gt": str(normal_gt), "method": method,
                    "checkpoint": None if method == "lambertian" else str(ck), **stats,
                    "selfcal": None if fit is None else {"applied": fit.applied, "scale": fit.scale.tolist(),
-                                                        "grey_rms": fit.grey_rms, "colour_rms": fit.colour_rms},
+                                                        "grey_rms": fit.grey_rms, "colour_rms": fit.colour_rms,
+                                                        "share": fit.share},
                    "refine": None if not refine else {"n_three": rstats.n_three, "n_two": rstats.n_two,
                                                       "rho": rstats.albedo.rho, "uniform": rstats.albedo.uniform},
                    "n_mask_pixels": int(mk.sum()), "n_left_out": int((mk & ~valid).sum())}

@@ -12,6 +12,11 @@ enough normal variation; a whole object has).  The fit is compared with the
 grey hypothesis a = s (1, 1, 1): only when the colour fit explains the pixels
 clearly better (residual below `accept` times the grey one) is the image
 rescaled, so grey, textured and non-Lambertian objects pass through unchanged.
+A second condition guards objects of several materials, where one material can fit well
+while the others are ignored (a channel's factor driven towards 0): at least `MIN_SHARE`
+of the lit pixels must have one albedo after the factor (|b| within `SHARE_TOL`, log, of
+the median -- the refinement's one-albedo test; chosen on validation frames,
+docs/reproducing.md "Stage 9").
 The scale is normalised to mean 1, so the image keeps its exposure.
 """
 from __future__ import annotations
@@ -24,6 +29,8 @@ _IU, _JU = np.triu_indices(3)
 REL_FLOOR = 0.1  # a pixel is used when every channel exceeds this fraction of the channel's 99th percentile over the object
 MIN_PIXELS = 200
 ACCEPT = 0.7  # colour residual / grey residual below this -> rescale
+SHARE_TOL = 0.1  # |log(|b| / median |b|)| below this after the factor: a pixel has the fitted albedo
+MIN_SHARE = 0.9  # share of lit pixels with the fitted albedo needed to rescale (docs/reproducing.md "Stage 9")
 
 
 @dataclass(frozen=True)
@@ -36,6 +43,7 @@ class ColourFit:
     colour_rms: float  # ... under the fitted colour
     n_pixels: int
     applied: bool
+    share: float = float("nan")  # lit pixels whose |b| after the factor is within SHARE_TOL of the median
 
     @property
     def ratio(self) -> float:
@@ -77,9 +85,18 @@ def _fit_scale(c: np.ndarray, B: np.ndarray, iters: int = 30) -> np.ndarray:
     return a
 
 
+def albedo_share(a: np.ndarray, c: np.ndarray, B: np.ndarray, tol: float = SHARE_TOL) -> float:
+    """Share of pixels c (N, 3) whose |b| = |A^-1 diag(a) c| lies within `tol` (log) of the median:
+    one uniform albedo explains them.  Why: the residual ratio alone accepts an object where one
+    material of several fits well and the rest is ignored (a channel's factor driven to ~0)."""
+    q = np.einsum("ni,ij,nj->n", c * a, B, c * a)
+    nb = np.sqrt(np.maximum(q, 1e-24))
+    return float((np.abs(np.log(nb / np.median(nb))) < tol).mean())
+
+
 def fit_albedo_colour(image: np.ndarray, mask: np.ndarray, light_dirs: np.ndarray, crosstalk: np.ndarray,
                       accept: float = ACCEPT, rel_floor: float = REL_FLOOR,
-                      min_pixels: int = MIN_PIXELS) -> ColourFit:
+                      min_pixels: int = MIN_PIXELS, min_share: float = MIN_SHARE) -> ColourFit:
     """Fit one uniform albedo colour to an object's lit pixels; `image` (H, W, 3), `mask` (H, W)."""
     c = np.asarray(image, np.float64)[np.asarray(mask, bool)]
     none = ColourFit(np.ones(3), np.ones(3), float("nan"), float("nan"), 0, False)
@@ -98,8 +115,9 @@ def fit_albedo_colour(image: np.ndarray, mask: np.ndarray, light_dirs: np.ndarra
     a = _fit_scale(c, B)
     colour = float(np.sqrt(np.mean(_unit_norm_residual(a, c, B) ** 2)))
     fitted = a / a.mean()
-    ok = bool(np.all(fitted > 0) and np.isfinite(colour) and colour < accept * grey)
-    return ColourFit(fitted if ok else np.ones(3), fitted, grey, colour, int(len(c)), ok)
+    share = albedo_share(a, c, B)
+    ok = bool(np.all(fitted > 0) and np.isfinite(colour) and colour < accept * grey and share >= min_share)
+    return ColourFit(fitted if ok else np.ones(3), fitted, grey, colour, int(len(c)), ok, share)
 
 
 def apply_colour_fit(image: np.ndarray, fit: ColourFit) -> np.ndarray:
