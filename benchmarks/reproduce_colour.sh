@@ -152,3 +152,18 @@ $MSPS train cpu --threads 2 --data "$DATA/train-colour-mixed" --data "$DATA/trai
 [ -f "$RUNS/report-7b/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --refine --data "$DATA/unseen-test-grey" \
   --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" \
   --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" --model 7b="$RUNS/lambert-gain/last.pt" --out "$RUNS/report-7b"
+
+# 8. stage 9 (docs/reproducing.md "Stage 9"): the self-calibration's one-albedo share chosen on the validation
+#    frames (rule in runs/9-decision.txt; the stage 8 reports above, re-run with this code, already include it),
+#    the bound on a local colour estimate, and the mirror ensemble (rule in runs/9b-decision.txt)
+[ -f "$RUNS/9-valsweep.json" ] || $PY benchmarks/selfcal_share_sweep.py --data "$DATA/val-frames" \
+  --data "$DATA/val-frames-grey" --data "$DATA/val-frames-colour" --model models/dualcue-cpu-v0.4.pt --out "$RUNS/9-valsweep.json"
+[ -f "$RUNS/chroma-oracle.json" ] || $PY benchmarks/chroma_oracle.py --data "$DATA/unseen-test-smooth" \
+  --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test-grey" \
+  --model models/dualcue-cpu-v0.4.pt --out "$RUNS/chroma-oracle.json"
+[ -f "$RUNS/9b-val/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --mirror --refine --data "$DATA/val-frames" \
+  --data "$DATA/val-frames-grey" --data "$DATA/val-frames-colour" --model v0.4=models/dualcue-cpu-v0.4.pt --out "$RUNS/9b-val"
+[ -f "$RUNS/report-mirror/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --mirror --refine \
+  --data "$DATA/unseen-test-grey" --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" \
+  --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" \
+  --model v0.4=models/dualcue-cpu-v0.4.pt --out "$RUNS/report-mirror"
