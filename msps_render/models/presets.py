@@ -55,6 +55,10 @@ class TrainSection(StrictModel):
     freeze_bn: bool = Field(False, description="keep BatchNorm layers in inference mode while training: their "
                                                "statistics stay those of the --init model and only weights "
                                                "learn (fine-tuning on a new corpus mix; docs/reproducing.md)")
+    mirror_aug: float = Field(0.0, ge=0, le=1, description="share of each batch replaced by its exact mirror "
+                                                          "image (rows reversed, channels 1 and 2 swapped, the "
+                                                          "rig mirrored with it; models/symmetry.py): a "
+                                                          "physically exact augmentation for any material")
 
 
 class ModelConfig(StrictModel):

@@ -91,3 +91,38 @@ def unit_mean(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> np.ndarray:
     n = s / np.maximum(np.linalg.norm(s, axis=-1, keepdims=True), 1e-12)
     n[~np.asarray(mask, bool)] = 0.0
     return n.astype(np.float32)
+
+
+PAPER_MIRROR = Mirror(axis=0, perm=(0, 2, 1))  # the augmentation's mirror: exact for any rig, mirrored with it
+
+
+def mirror_batch(batch: dict, which) -> dict:
+    """A training batch with the patches `which` (B,) bool replaced by their mirror images.
+
+    Exact for any rig: rows reversed (n_y -> -n_y) and channels 1, 2 swapped is what the mirrored
+    rig (lights mirrored and relabelled, crosstalk relabelled) records of the mirrored object with
+    its albedo's channels 1, 2 swapped -- so `light_dirs` and `crosstalk` are mirrored too."""
+    import torch
+
+    w = torch.as_tensor(np.asarray(which, bool))
+    if not w.any():
+        return batch
+    p = list(PAPER_MIRROR.perm)  # an involution: channel p[k] reads what channel k did
+    out = dict(batch)
+
+    def sel(new, old):
+        shape = (-1,) + (1,) * (old.dim() - 1)
+        return torch.where(w.view(shape), new, old)
+
+    out["image"] = sel(torch.flip(batch["image"], (2,))[:, p], batch["image"])
+    out["mask"] = sel(torch.flip(batch["mask"], (2,)), batch["mask"])
+    n = torch.flip(batch["normal"], (2,)).clone()
+    n[:, 1] = -n[:, 1]
+    out["normal"] = sel(n, batch["normal"])
+    if "light_dirs" in batch:
+        L = batch["light_dirs"].clone()
+        L[..., 1] = -L[..., 1]
+        out["light_dirs"] = sel(L[:, p], batch["light_dirs"])
+    if "crosstalk" in batch:
+        out["crosstalk"] = sel(batch["crosstalk"][:, p][:, :, p], batch["crosstalk"])
+    return out

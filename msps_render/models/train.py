@@ -197,6 +197,11 @@ def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
 
 def train_step(run: Run, batch: dict, device: str) -> tuple[torch.Tensor, dict]:
     """One optimizer step on one batch: (loss, loss parts)."""
+    if run.cfg.train.mirror_aug > 0:  # seeded by the step, so a resumed run mirrors the same patches
+        from msps_render.models.symmetry import mirror_batch
+
+        rng = np.random.default_rng((run.cfg.train.seed, run.state["step"]))
+        batch = mirror_batch(batch, rng.random(len(batch["image"])) < run.cfg.train.mirror_aug)
     x, n, m = batch["image"].to(device), batch["normal"].to(device), batch["mask"].to(device)
     final, coarse = run.model(x, m, batch_rig(batch).to(device))
     loss, parts = total_loss(final, coarse, n, m, run.cfg.net.mode)
