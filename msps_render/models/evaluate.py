@@ -94,21 +94,19 @@ class Method:
         import torch
 
         rigs = b["crosstalk"] @ b["light_dirs"]
-        with torch.no_grad():
-            pred = self.model(image, b["mask"], rigs)[0].numpy()
+
+        def net(x: np.ndarray, mk: np.ndarray) -> np.ndarray:  # (B, P, P, 3), (B, P, P) -> (B, P, P, 3)
+            with torch.no_grad():
+                out = self.model(torch.from_numpy(np.ascontiguousarray(x.transpose(0, 3, 1, 2), np.float32)),
+                                 torch.from_numpy(np.ascontiguousarray(mk[:, None], np.float32)), rigs)[0]
+            return out.numpy().transpose(0, 2, 3, 1)
+
+        img, mk = image.numpy().transpose(0, 2, 3, 1), b["mask"].numpy()[:, 0] > 0
         if not self.mirror:
-            return image.numpy(), pred
-        # the batch's mirror images in one pass, each patch by its own rig's symmetry
-        img, mk = image.numpy().transpose(0, 2, 3, 1), b["mask"].numpy()[:, 0]
+            return image.numpy(), net(img, mk).transpose(0, 3, 1, 2)
         mirrors = [symmetry.require_mirror(b["light_dirs"][i].numpy(), b["crosstalk"][i].numpy())
                    for i in range(len(img))]
-        x = np.stack([mr.image(im) for mr, im in zip(mirrors, img)]).transpose(0, 3, 1, 2)
-        xm = np.stack([mr.mask(m) for mr, m in zip(mirrors, mk)])[:, None]
-        with torch.no_grad():
-            back = self.model(torch.from_numpy(np.ascontiguousarray(x)), torch.from_numpy(xm), rigs)[0].numpy()
-        back = np.stack([mr.normals_back(n) for mr, n in zip(mirrors, back.transpose(0, 2, 3, 1))])
-        mean = symmetry.unit_mean(pred.transpose(0, 2, 3, 1), back, mk > 0).transpose(0, 3, 1, 2)
-        return image.numpy(), np.where(mk[:, None] > 0, mean, pred)  # outside the mask as predicted
+        return image.numpy(), symmetry.mirror_ensemble_batch(net, img, mk, mirrors).transpose(0, 3, 1, 2)
 
     def refined_patches(self, image: np.ndarray, pred: np.ndarray, b, fits: list["FrameFit"] | None
                         ) -> np.ndarray:

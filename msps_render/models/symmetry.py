@@ -85,6 +85,17 @@ def mirror_ensemble(predict: Callable[[np.ndarray, np.ndarray], np.ndarray], ima
     return unit_mean(a, mirror.normals_back(predict(mirror.image(image), mirror.mask(mask))), mask)
 
 
+def mirror_ensemble_batch(predict: Callable[[np.ndarray, np.ndarray], np.ndarray], images: np.ndarray,
+                          masks: np.ndarray, mirrors: list[Mirror]) -> np.ndarray:
+    """`mirror_ensemble` for a batch (B, H, W, 3) / (B, H, W), each item by its own rig's mirror, in two
+    calls of `predict` (the batch, then its mirror images)."""
+    a = predict(images, masks)
+    x = np.stack([mr.image(im) for mr, im in zip(mirrors, images)])
+    xm = np.stack([mr.mask(m) for mr, m in zip(mirrors, masks)])
+    back = np.stack([mr.normals_back(n) for mr, n in zip(mirrors, predict(x, xm))])
+    return unit_mean(a, back, masks)
+
+
 def unit_mean(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(a + b) / |a + b| for normals (..., 3); 0 outside `mask` (...)."""
     s = np.asarray(a, np.float64) + np.asarray(b, np.float64)
