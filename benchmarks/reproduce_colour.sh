@@ -167,3 +167,15 @@ $MSPS train cpu --threads 2 --data "$DATA/train-colour-mixed" --data "$DATA/trai
   --data "$DATA/unseen-test-grey" --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" \
   --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" \
   --model v0.4=models/dualcue-cpu-v0.4.pt --out "$RUNS/report-mirror"
+# stage 9c (measured, not shipped): the mirror as a training augmentation (rule in runs/9c-decision.txt), 30 minutes
+$MSPS render train-colour-env --out "$DATA/train-colour-env" --workers 2 $R
+resume=""; [ -f "$RUNS/mirror-aug/last.pt" ] && resume="--resume"
+$MSPS train cpu --threads 2 --data "$DATA/train-colour-env" --data "$DATA/train-grey-30" --data "$DATA/blobs-48" \
+  --val "$DATA/val" --init models/dualcue-cpu-v0.4.pt --out "$RUNS/mirror-aug" $resume --set train.freeze_bn=true \
+  --set train.shuffle_window=0 --set train.cache=true --set train.mirror_aug=0.5 --set train.max_minutes=30 \
+  --set train.lr=1e-4 --set train.val_every=500 --set train.val_max_patches=1500
+[ -f "$RUNS/report-9c/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --refine --data "$DATA/unseen-test-grey" \
+  --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" \
+  --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" --model 9c="$RUNS/mirror-aug/last.pt" --out "$RUNS/report-9c"
+[ -f "$RUNS/real-9c/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-9c" --selfcal \
+  --refine --checkpoint 9c="$RUNS/mirror-aug/last.pt"
