@@ -59,6 +59,10 @@ class TrainSection(StrictModel):
                                                           "image (rows reversed, channels 1 and 2 swapped, the "
                                                           "rig mirrored with it; models/symmetry.py): a "
                                                           "physically exact augmentation for any material")
+    albedo_aug: float = Field(0.0, ge=0, le=1, description="share of each batch whose albedo is multiplied by "
+                                                           "a fresh colour field (smooth, noise, patches, "
+                                                           "stripes, decals; full gamut; models/augment.py): "
+                                                           "exact for direct light in RGB mode")
 
 
 class ModelConfig(StrictModel):

@@ -202,6 +202,11 @@ def train_step(run: Run, batch: dict, device: str) -> tuple[torch.Tensor, dict]:
 
         rng = np.random.default_rng((run.cfg.train.seed, run.state["step"]))
         batch = mirror_batch(batch, rng.random(len(batch["image"])) < run.cfg.train.mirror_aug)
+    if run.cfg.train.albedo_aug > 0:  # its own stream, so runs with mirror_aug alone are unchanged
+        from msps_render.models.augment import albedo_batch
+
+        rng = np.random.default_rng((run.cfg.train.seed, run.state["step"], 1))
+        batch = albedo_batch(batch, rng.random(len(batch["image"])) < run.cfg.train.albedo_aug, rng)
     x, n, m = batch["image"].to(device), batch["normal"].to(device), batch["mask"].to(device)
     final, coarse = run.model(x, m, batch_rig(batch).to(device))
     loss, parts = total_loss(final, coarse, n, m, run.cfg.net.mode)
