@@ -277,7 +277,7 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
                    "checkpoint": None if method == "lambertian" else str(ck), **stats,
                    "selfcal": None if fit is None else {"applied": fit.applied, "scale": fit.scale.tolist(),
                                                         "grey_rms": fit.grey_rms, "colour_rms": fit.colour_rms,
-                                                        "share": fit.share},
+                                                        "share": fit.share, "grey_share": fit.grey_share},
                    "refine": None if not refine else {"n_three": rstats.n_three, "n_two": rstats.n_two,
                                                       "rho": rstats.albedo.rho, "uniform": rstats.albedo.uniform},
                    "n_mask_pixels": int(mk.sum()), "n_left_out": int((mk & ~valid).sum())}

@@ -16,7 +16,9 @@ A second condition guards objects of several materials, where one material can f
 while the others are ignored (a channel's factor driven towards 0): at least `MIN_SHARE`
 of the lit pixels must have one albedo after the factor (|b| within `SHARE_TOL`, log, of
 the median -- the refinement's one-albedo test; chosen on validation frames,
-docs/reproducing.md "Stage 9").
+docs/reproducing.md "Stage 9").  And the grey hypothesis goes first: when the pixels already
+pass that test with no factor, grey explains the object and a colour fit would be fitting
+interreflections in its creases (docs/reproducing.md "Stage 10").
 The scale is normalised to mean 1, so the image keeps its exposure.
 """
 from __future__ import annotations
@@ -44,6 +46,7 @@ class ColourFit:
     n_pixels: int
     applied: bool
     share: float = float("nan")  # lit pixels whose |b| after the factor is within SHARE_TOL of the median
+    grey_share: float = float("nan")  # ... with no factor: >= MIN_SHARE means grey already explains them
 
     @property
     def ratio(self) -> float:
@@ -96,8 +99,10 @@ def albedo_share(a: np.ndarray, c: np.ndarray, B: np.ndarray, tol: float = SHARE
 
 def fit_albedo_colour(image: np.ndarray, mask: np.ndarray, light_dirs: np.ndarray, crosstalk: np.ndarray,
                       accept: float = ACCEPT, rel_floor: float = REL_FLOOR,
-                      min_pixels: int = MIN_PIXELS, min_share: float = MIN_SHARE) -> ColourFit:
-    """Fit one uniform albedo colour to an object's lit pixels; `image` (H, W, 3), `mask` (H, W)."""
+                      min_pixels: int = MIN_PIXELS, min_share: float = MIN_SHARE,
+                      grey_first: bool = True) -> ColourFit:
+    """Fit one uniform albedo colour to an object's lit pixels; `image` (H, W, 3), `mask` (H, W).
+    `grey_first`: refuse when the pixels pass the one-albedo test with no factor."""
     c = np.asarray(image, np.float64)[np.asarray(mask, bool)]
     none = ColourFit(np.ones(3), np.ones(3), float("nan"), float("nan"), 0, False)
     if len(c) == 0:
@@ -116,8 +121,10 @@ def fit_albedo_colour(image: np.ndarray, mask: np.ndarray, light_dirs: np.ndarra
     colour = float(np.sqrt(np.mean(_unit_norm_residual(a, c, B) ** 2)))
     fitted = a / a.mean()
     share = albedo_share(a, c, B)
-    ok = bool(np.all(fitted > 0) and np.isfinite(colour) and colour < accept * grey and share >= min_share)
-    return ColourFit(fitted if ok else np.ones(3), fitted, grey, colour, int(len(c)), ok, share)
+    grey_share = albedo_share(np.ones(3), c, B)
+    ok = bool(np.all(fitted > 0) and np.isfinite(colour) and colour < accept * grey and share >= min_share
+              and not (grey_first and grey_share >= min_share))
+    return ColourFit(fitted if ok else np.ones(3), fitted, grey, colour, int(len(c)), ok, share, grey_share)
 
 
 def apply_colour_fit(image: np.ndarray, fit: ColourFit) -> np.ndarray:
