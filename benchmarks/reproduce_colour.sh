@@ -179,3 +179,19 @@ $MSPS train cpu --threads 2 --data "$DATA/train-colour-env" --data "$DATA/train-
   --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" --model 9c="$RUNS/mirror-aug/last.pt" --out "$RUNS/report-9c"
 [ -f "$RUNS/real-9c/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-9c" --selfcal \
   --refine --checkpoint 9c="$RUNS/mirror-aug/last.pt"
+# stage 10a: the albedo augmentation (rule in runs/10-decision.txt), the 9c control's run with train.albedo_aug=0.5
+resume=""; [ -f "$RUNS/albedo-aug/last.pt" ] && resume="--resume"
+$MSPS train cpu --threads 2 --data "$DATA/train-colour-env" --data "$DATA/train-grey-30" --data "$DATA/blobs-48" \
+  --val "$DATA/val" --init models/dualcue-cpu-v0.4.pt --out "$RUNS/albedo-aug" $resume --set train.freeze_bn=true \
+  --set train.shuffle_window=0 --set train.cache=true --set train.albedo_aug=0.5 --set train.max_minutes=30 \
+  --set train.lr=1e-4 --set train.val_every=500 --set train.val_max_patches=1500
+# stage 10s (selfcal: grey goes first, rule in runs/10s-decision.txt): validation, then the test sets for v0.4, the
+# 9c control and 10a under the same code
+[ -f "$RUNS/10s-val/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --refine --data "$DATA/val-frames" \
+  --data "$DATA/val-frames-grey" --data "$DATA/val-frames-colour" --model v0.4=models/dualcue-cpu-v0.4.pt --out "$RUNS/10s-val"
+[ -f "$RUNS/report-10/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --refine --data "$DATA/unseen-test-grey" \
+  --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" \
+  --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" --model v0.4=models/dualcue-cpu-v0.4.pt \
+  --model control="$RUNS/mirror-aug-control/last.pt" --model 10a="$RUNS/albedo-aug/last.pt" --out "$RUNS/report-10"
+[ -f "$RUNS/real-10a/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-10a" --selfcal \
+  --refine --checkpoint 10a="$RUNS/albedo-aug/last.pt"
