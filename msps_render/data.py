@@ -24,7 +24,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from msps_render.dataset import (SHARD_DIR, WholeFrame, iter_whole_frames, load_manifest, open_shard,
-                                 read_calibration, read_patch_layout, read_patches, read_patches_into,
+                                 read_calibration, read_frame_lambertian, read_patch_layout, read_patches, read_patches_into,
                                  read_shard_patches, shard_errors, verify_dataset)
 from msps_render.dataset.manifest import at_fault
 from msps_render.errors import InputError
@@ -86,7 +86,8 @@ class PatchDataset(Dataset):
     """Patches of a dataset directory as dicts of tensors:
 
     image (3,P,P) float32 linear radiance, normal (3,P,P), mask (1,P,P) float32,
-    light_dirs (3,3), crosstalk (3,3), plus shard/frame/index ids.
+    light_dirs (3,3), crosstalk (3,3), lambertian () bool (the frame's image is linear in its
+    albedo: `dataset.reader.scene_is_lambertian`), plus shard/frame/index ids.
     """
 
     decoded_shards = 8  # LRU size of decoded shards per process for per-item access (~15 MB each)
@@ -142,7 +143,7 @@ class PatchDataset(Dataset):
     @staticmethod
     def _read_meta(path: Path) -> dict:
         with shard_errors(path), open_shard(path) as h:
-            return {**read_calibration(h), "layout": read_patch_layout(h)}
+            return {**read_calibration(h), "lambertian": read_frame_lambertian(h), "layout": read_patch_layout(h)}
 
     @staticmethod
     def _read_all(path: Path) -> dict:
@@ -195,6 +196,7 @@ class PatchDataset(Dataset):
             "mask": torch.from_numpy(msk[:, None].astype(np.float32)),
             "light_dirs": torch.from_numpy(meta["light_dirs"][f].astype(np.float32)),
             "crosstalk": torch.from_numpy(meta["crosstalk"][f].astype(np.float32)),
+            "lambertian": torch.from_numpy(meta["lambertian"][f]),
             "shard": torch.full((len(local),), s, dtype=torch.int64),
             "frame": torch.from_numpy(f.astype(np.int64)),
             "index": torch.from_numpy(local.astype(np.int64) + self.offsets[s]),
@@ -283,7 +285,8 @@ def _assemble(idx: np.ndarray, runs: list[tuple[int, int, int]], live: dict[int,
     n, first = len(idx), live[runs[0][0]]
     out = {k: np.empty((n,) + first[k].shape[1:], np.float32) for k in ("image", "normal", "mask")}
     out.update(light_dirs=np.empty((n, 3, 3), np.float32), crosstalk=np.empty((n, 3, 3), np.float32),
-               shard=np.empty(n, np.int64), frame=np.empty(n, np.int64), index=idx.copy())
+               lambertian=np.empty(n, bool), shard=np.empty(n, np.int64), frame=np.empty(n, np.int64),
+               index=idx.copy())
     for s, a, z in runs:
         d, m, local = live[s], meta[s], idx[a:z] - offsets[s]
         for k in ("image", "normal", "mask"):
@@ -291,6 +294,7 @@ def _assemble(idx: np.ndarray, runs: list[tuple[int, int, int]], live: dict[int,
         f = m["frame_index"][local]
         out["frame"][a:z], out["shard"][a:z] = f, s
         out["light_dirs"][a:z], out["crosstalk"][a:z] = m["light_dirs"][f], m["crosstalk"][f]
+        out["lambertian"][a:z] = m["lambertian"][f]
     return {k: torch.from_numpy(v) for k, v in out.items()}
 
 

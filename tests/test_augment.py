@@ -133,3 +133,79 @@ def test_training_with_an_augmentation_is_deterministic(key):
     a = weights(0.5)
     assert torch.equal(a, weights(0.5))
     assert not torch.equal(a, weights(0.0))
+
+
+# ------------------------------------------------ train.albedo_aug_scope = "lambertian"
+def test_scene_is_lambertian_only_where_the_tint_is_exact():
+    from msps_render.dataset import scene_is_lambertian
+
+    diffuse = {"name": "grey", "kind": "diffuse", "params": {}, "texture": None, "blend": None}
+    textured = {**diffuse, "texture": {"kind": "patches"}}
+    merl = {"name": "nbrdf:pink-felt", "kind": "merl", "params": {}, "texture": None, "blend": None}
+    plastic = {"name": "plastic", "kind": "plastic", "params": {}, "texture": None, "blend": None}
+    rgb = {"mode": "rgb", "camera_response": None}
+    assert scene_is_lambertian({**rgb, "materials": [diffuse]})
+    assert scene_is_lambertian({**rgb, "materials": [diffuse, textured]})
+    assert not scene_is_lambertian({**rgb, "materials": [diffuse, merl]})
+    assert not scene_is_lambertian({**rgb, "materials": [plastic]})
+    assert not scene_is_lambertian({**rgb, "materials": [{**diffuse, "blend": {"second": "x"}}]})
+    assert not scene_is_lambertian({"mode": "spectral", "camera_response": None, "materials": [diffuse]})
+    assert not scene_is_lambertian({"mode": "rgb", "camera_response": {"kind": "gamma"}, "materials": [diffuse]})
+
+
+@pytest.mark.parametrize("scope", ["all", "lambertian"])
+def test_albedo_scope_tints_only_lambertian_patches(scope):
+    """Share 1: scope `all` tints every patch; `lambertian` leaves the other patches bit-exact."""
+    import torch
+
+    from msps_render.models.presets import load_model_config
+    from msps_render.models.train import augment
+
+    cfg = load_model_config("cpu", ["train.albedo_aug=1.0", f"train.albedo_aug_scope={scope}"]).train
+    batch = {**_batch(), "lambertian": torch.tensor([True, False, True, False])}
+    out = augment(cfg, batch, step=3)
+    changed = [not torch.equal(out["image"][i], batch["image"][i]) for i in range(4)]
+    assert changed == ([True] * 4 if scope == "all" else [True, False, True, False])
+    again = augment(cfg, batch, step=3)  # seeded by (seed, step)
+    assert torch.equal(out["image"], again["image"])
+
+
+@pytest.fixture(scope="module")
+def diffuse_or_measured(tmp_path_factory):
+    """A tiny rendered dataset whose frames hold one material each: Lambertian or measured."""
+    from msps_render.pipeline.config import load_config
+    from msps_render.pipeline.run import render_dataset
+
+    cfg = load_config("demo", ["dataset.seed=1", "dataset.n_shards=2", "dataset.frames_per_shard=3", "camera.width=64",
+                               "camera.height=64", "integrator.spp=2", "materials.min_count=1",
+                               "materials.max_count=1", "materials.merl_fraction=0.4",
+                               'materials.families=["diffuse"]'])
+    out = tmp_path_factory.mktemp("scope") / "ds"
+    render_dataset(cfg, out, progress=False)
+    return out
+
+
+def test_batches_carry_the_frames_lambertian_flag(diffuse_or_measured):
+    """Both batch paths (get_batch and the shard loader) flag a patch exactly when its frame's one
+    material is the Lambertian one (the frame table names it), and the dataset holds both kinds."""
+    from msps_render.data import PatchDataset, make_loader
+    from msps_render.dataset import read_frame_table
+
+    ds = PatchDataset(diffuse_or_measured)
+    expect = []
+    for path, _, _ in ds.shards:
+        mats = read_frame_table(path)["materials"]
+        expect.append(np.array([m == "diffuse" for m in mats]))
+    b = ds.get_batch(np.arange(len(ds)))
+    truth = np.array([expect[s][f] for s, f in zip(b["shard"].numpy(), b["frame"].numpy())])
+    assert b["lambertian"].dtype == torch_bool() and np.array_equal(b["lambertian"].numpy(), truth)
+    assert 0 < truth.sum() < len(truth)  # both kinds present, so the check can fail
+    for lb in make_loader(ds, batch_size=16, shuffle=True, seed=1):
+        got = np.array([expect[s][f] for s, f in zip(lb["shard"].numpy(), lb["frame"].numpy())])
+        assert np.array_equal(lb["lambertian"].numpy(), got)
+
+
+def torch_bool():
+    import torch
+
+    return torch.bool

@@ -64,6 +64,23 @@ def read_calibration(h) -> dict[str, np.ndarray]:
             "crosstalk": h[K.FRAME_CROSSTALK][()]}
 
 
+def scene_is_lambertian(scene: dict) -> bool:
+    """Is a frame's image linear in each material's albedo, channel by channel?  RGB mode, every
+    material Lambertian (kind "diffuse", textured or not) and no camera response: then multiplying
+    channel c by a field is exactly the image of the same object re-coloured (direct light and the
+    environment; `models/augment.py`).  A measured or glossy material's highlight would be tinted too,
+    which no dielectric does."""
+    return (scene.get("mode", "rgb") == "rgb" and scene.get("camera_response") is None
+            and all(m.get("kind") == "diffuse" and not m.get("blend") for m in scene.get("materials", ())))
+
+
+def read_frame_lambertian(h) -> np.ndarray:
+    """(F,) bool per frame of an open shard: `scene_is_lambertian` of its stored scene."""
+    import json
+
+    return np.array([scene_is_lambertian(json.loads(s)) for s in h[K.FRAME_SCENE_JSON].asstr()[()]], bool)
+
+
 def read_shard_patches(path: str | Path) -> dict[str, np.ndarray]:
     with shard_errors(path), open_shard(path, chunk_cache=False) as h:
         return read_patches(h)

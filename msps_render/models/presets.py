@@ -63,6 +63,11 @@ class TrainSection(StrictModel):
                                                            "a fresh colour field (smooth, noise, patches, "
                                                            "stripes, decals; full gamut; models/augment.py): "
                                                            "exact for direct light in RGB mode")
+    albedo_aug_scope: Literal["all", "lambertian"] = Field(
+        "all", description="which patches `albedo_aug` may tint: all, or only those of frames whose image is "
+                           "linear in the albedo (every material Lambertian, RGB mode, no camera response), "
+                           "where the tint is physical too -- a tinted measured or glossy material gets a "
+                           "coloured highlight, which dielectrics never have (docs/reproducing.md, stage 11)")
 
 
 class ModelConfig(StrictModel):

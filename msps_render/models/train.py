@@ -195,18 +195,30 @@ def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
         g["lr"] = lr
 
 
-def train_step(run: Run, batch: dict, device: str) -> tuple[torch.Tensor, dict]:
-    """One optimizer step on one batch: (loss, loss parts)."""
-    if run.cfg.train.mirror_aug > 0:  # seeded by the step, so a resumed run mirrors the same patches
+def augment(train_cfg, batch: dict, step: int) -> dict:
+    """The batch after the configured augmentations (`train.mirror_aug`, `train.albedo_aug`).
+
+    Each draws from its own stream seeded by (seed, step), so a resumed run augments the same
+    patches and a run with `mirror_aug` alone is unchanged by the albedo options."""
+    if train_cfg.mirror_aug > 0:
         from msps_render.models.symmetry import mirror_batch
 
-        rng = np.random.default_rng((run.cfg.train.seed, run.state["step"]))
-        batch = mirror_batch(batch, rng.random(len(batch["image"])) < run.cfg.train.mirror_aug)
-    if run.cfg.train.albedo_aug > 0:  # its own stream, so runs with mirror_aug alone are unchanged
+        rng = np.random.default_rng((train_cfg.seed, step))
+        batch = mirror_batch(batch, rng.random(len(batch["image"])) < train_cfg.mirror_aug)
+    if train_cfg.albedo_aug > 0:
         from msps_render.models.augment import albedo_batch
 
-        rng = np.random.default_rng((run.cfg.train.seed, run.state["step"], 1))
-        batch = albedo_batch(batch, rng.random(len(batch["image"])) < run.cfg.train.albedo_aug, rng)
+        rng = np.random.default_rng((train_cfg.seed, step, 1))
+        which = rng.random(len(batch["image"])) < train_cfg.albedo_aug
+        if train_cfg.albedo_aug_scope == "lambertian":  # only where the tint is exact and physical
+            which &= batch["lambertian"].numpy().astype(bool)
+        batch = albedo_batch(batch, which, rng)
+    return batch
+
+
+def train_step(run: Run, batch: dict, device: str) -> tuple[torch.Tensor, dict]:
+    """One optimizer step on one batch: (loss, loss parts)."""
+    batch = augment(run.cfg.train, batch, run.state["step"])
     x, n, m = batch["image"].to(device), batch["normal"].to(device), batch["mask"].to(device)
     final, coarse = run.model(x, m, batch_rig(batch).to(device))
     loss, parts = total_loss(final, coarse, n, m, run.cfg.net.mode)
