@@ -195,3 +195,30 @@ $MSPS train cpu --threads 2 --data "$DATA/train-colour-env" --data "$DATA/train-
   --model control="$RUNS/mirror-aug-control/last.pt" --model 10a="$RUNS/albedo-aug/last.pt" --out "$RUNS/report-10"
 [ -f "$RUNS/real-10a/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-10a" --selfcal \
   --refine --checkpoint 10a="$RUNS/albedo-aug/last.pt"
+# stage 11 (rule in runs/11-decision.txt): 10a with the tint only where it is exact and physical
+# (train.albedo_aug_scope=lambertian), fixed in steps (10a's 7,685) so other work cannot change the run;
+# 11a at share 0.5, 11b at share 1.0 (the dose: only 38.9 % of the patches are eligible)
+for share in 0.5 1.0; do
+  out="$RUNS/albedo-lamb"; [ "$share" = "1.0" ] && out="$RUNS/albedo-lamb-1"
+  resume=""; [ -f "$out/last.pt" ] && resume="--resume"
+  $MSPS train cpu --threads 2 --data "$DATA/train-colour-env" --data "$DATA/train-grey-30" --data "$DATA/blobs-48" \
+    --val "$DATA/val" --init models/dualcue-cpu-v0.4.pt --out "$out" $resume --set train.freeze_bn=true \
+    --set train.shuffle_window=0 --set train.cache=true --set train.albedo_aug=$share \
+    --set train.albedo_aug_scope=lambertian --set train.max_minutes=60 --set train.max_steps=7685 \
+    --set train.lr=1e-4 --set train.val_every=500 --set train.val_max_patches=1500
+done
+for m in v0.4=models/dualcue-cpu-v0.4.pt 11a="$RUNS/albedo-lamb/last.pt" 11b="$RUNS/albedo-lamb-1/last.pt"; do
+  n=${m%%=*}; ck=${m#*=}
+  [ -f "$RUNS/report-11-$n/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --refine \
+    --data "$DATA/unseen-test-grey" --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" \
+    --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" \
+    --model "$m" --out "$RUNS/report-11-$n"
+  [ -f "$RUNS/real-11-$n/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-11-$n" \
+    --selfcal --refine --checkpoint "$m"
+  [ -f "$RUNS/blob-11-$n.txt" ] || $PY benchmarks/blob_check.py --model "$m" > "$RUNS/blob-11-$n.txt"
+  [ -f "$RUNS/eval-11-env-$n/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
+    --checkpoint "$m" --method lambertian --out "$RUNS/eval-11-env-$n"
+done
+# the field self-calibration probe (a negative result: the unit-norm constraint cannot pin a colour field)
+[ -f "$RUNS/field-selfcal.json" ] || $PY benchmarks/field_selfcal_probe.py --data "$DATA/unseen-test-smooth" \
+  --data "$DATA/unseen-test-patches" --out "$RUNS/field-selfcal.json"
