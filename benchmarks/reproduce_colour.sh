@@ -222,3 +222,21 @@ done
 # the field self-calibration probe (a negative result: the unit-norm constraint cannot pin a colour field)
 [ -f "$RUNS/field-selfcal.json" ] || $PY benchmarks/field_selfcal_probe.py --data "$DATA/unseen-test-smooth" \
   --data "$DATA/unseen-test-patches" --out "$RUNS/field-selfcal.json"
+# stage 11d and its control (no tint): v0.4 + 4,000 steps of its own last-stage diet (train-grey-30 + blobs-48)
+for share in 0.25 0.0; do
+  out="$RUNS/albedo-lamb-v04"; scope="--set train.albedo_aug_scope=lambertian"
+  [ "$share" = "0.0" ] && { out="$RUNS/albedo-lamb-v04-control"; scope=""; }
+  resume=""; [ -f "$out/last.pt" ] && resume="--resume"
+  $MSPS train cpu --threads 2 --data "$DATA/train-grey-30" --data "$DATA/blobs-48" --val "$DATA/val" \
+    --init models/dualcue-cpu-v0.4.pt --out "$out" $resume --set train.freeze_bn=true --set train.shuffle_window=0 \
+    --set train.cache=true --set train.albedo_aug=$share $scope \
+    --set train.max_minutes=60 --set train.max_steps=4000 --set train.lr=1e-4 --set train.val_every=500 \
+    --set train.val_max_patches=1500
+done
+for m in 11d="$RUNS/albedo-lamb-v04/last.pt" 11dc="$RUNS/albedo-lamb-v04-control/last.pt"; do
+  n=${m%%=*}
+  [ -f "$RUNS/report-11-$n/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --refine \
+    --data "$DATA/unseen-test-grey" --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" \
+    --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" \
+    --model "$m" --out "$RUNS/report-11-$n"
+done
