@@ -24,8 +24,8 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from msps_render.dataset import (SHARD_DIR, WholeFrame, iter_whole_frames, load_manifest, open_shard,
-                                 read_calibration, read_frame_lambertian, read_patch_layout, read_patches, read_patches_into,
-                                 read_shard_patches, shard_errors, verify_dataset)
+                                 read_calibration, read_frame_lambertian, read_patch_layout, read_patches,
+                                 read_patches_into, read_shard_patches, shard_errors, verify_dataset)
 from msps_render.dataset.manifest import at_fault
 from msps_render.errors import InputError
 
@@ -143,7 +143,8 @@ class PatchDataset(Dataset):
     @staticmethod
     def _read_meta(path: Path) -> dict:
         with shard_errors(path), open_shard(path) as h:
-            return {**read_calibration(h), "lambertian": read_frame_lambertian(h), "layout": read_patch_layout(h)}
+            return {**read_calibration(h), "lambertian": read_frame_lambertian(h),
+                    "layout": read_patch_layout(h)}
 
     @staticmethod
     def _read_all(path: Path) -> dict:

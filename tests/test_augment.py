@@ -170,14 +170,22 @@ def test_albedo_scope_tints_only_lambertian_patches(scope):
     assert torch.equal(out["image"], again["image"])
 
 
+def test_bad_albedo_scope_is_one_clear_error():
+    from msps_render.errors import InputError
+    from msps_render.models.presets import load_model_config
+
+    with pytest.raises(InputError, match=r"train\.albedo_aug_scope: Input should be 'all' or 'lambertian'"):
+        load_model_config("cpu", ["train.albedo_aug_scope=physical"])
+
+
 @pytest.fixture(scope="module")
 def diffuse_or_measured(tmp_path_factory):
     """A tiny rendered dataset whose frames hold one material each: Lambertian or measured."""
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.run import render_dataset
 
-    cfg = load_config("demo", ["dataset.seed=1", "dataset.n_shards=2", "dataset.frames_per_shard=3", "camera.width=64",
-                               "camera.height=64", "integrator.spp=2", "materials.min_count=1",
+    cfg = load_config("demo", ["dataset.seed=1", "dataset.n_shards=2", "dataset.frames_per_shard=3",
+                               "camera.width=64", "camera.height=64", "integrator.spp=2", "materials.min_count=1",
                                "materials.max_count=1", "materials.merl_fraction=0.4",
                                'materials.families=["diffuse"]'])
     out = tmp_path_factory.mktemp("scope") / "ds"
@@ -188,6 +196,8 @@ def diffuse_or_measured(tmp_path_factory):
 def test_batches_carry_the_frames_lambertian_flag(diffuse_or_measured):
     """Both batch paths (get_batch and the shard loader) flag a patch exactly when its frame's one
     material is the Lambertian one (the frame table names it), and the dataset holds both kinds."""
+    import torch
+
     from msps_render.data import PatchDataset, make_loader
     from msps_render.dataset import read_frame_table
 
@@ -198,14 +208,9 @@ def test_batches_carry_the_frames_lambertian_flag(diffuse_or_measured):
         expect.append(np.array([m == "diffuse" for m in mats]))
     b = ds.get_batch(np.arange(len(ds)))
     truth = np.array([expect[s][f] for s, f in zip(b["shard"].numpy(), b["frame"].numpy())])
-    assert b["lambertian"].dtype == torch_bool() and np.array_equal(b["lambertian"].numpy(), truth)
+    assert b["lambertian"].dtype == torch.bool and np.array_equal(b["lambertian"].numpy(), truth)
     assert 0 < truth.sum() < len(truth)  # both kinds present, so the check can fail
     for lb in make_loader(ds, batch_size=16, shuffle=True, seed=1):
         got = np.array([expect[s][f] for s, f in zip(lb["shard"].numpy(), lb["frame"].numpy())])
         assert np.array_equal(lb["lambertian"].numpy(), got)
 
-
-def torch_bool():
-    import torch
-
-    return torch.bool
