@@ -200,6 +200,7 @@ class PatchDataset(Dataset):
             "lambertian": torch.from_numpy(meta["lambertian"][f]),
             "shard": torch.full((len(local),), s, dtype=torch.int64),
             "frame": torch.from_numpy(f.astype(np.int64)),
+            "yx": torch.from_numpy(meta["yx"][local]),
             "index": torch.from_numpy(local.astype(np.int64) + self.offsets[s]),
         }
 
@@ -287,7 +288,7 @@ def _assemble(idx: np.ndarray, runs: list[tuple[int, int, int]], live: dict[int,
     out = {k: np.empty((n,) + first[k].shape[1:], np.float32) for k in ("image", "normal", "mask")}
     out.update(light_dirs=np.empty((n, 3, 3), np.float32), crosstalk=np.empty((n, 3, 3), np.float32),
                lambertian=np.empty(n, bool), shard=np.empty(n, np.int64), frame=np.empty(n, np.int64),
-               index=idx.copy())
+               yx=np.empty((n, 2), np.int64), index=idx.copy())
     for s, a, z in runs:
         d, m, local = live[s], meta[s], idx[a:z] - offsets[s]
         for k in ("image", "normal", "mask"):
@@ -296,6 +297,7 @@ def _assemble(idx: np.ndarray, runs: list[tuple[int, int, int]], live: dict[int,
         out["frame"][a:z], out["shard"][a:z] = f, s
         out["light_dirs"][a:z], out["crosstalk"][a:z] = m["light_dirs"][f], m["crosstalk"][f]
         out["lambertian"][a:z] = m["lambertian"][f]
+        out["yx"][a:z] = m["yx"][local]
     return {k: torch.from_numpy(v) for k, v in out.items()}
 
 

@@ -59,8 +59,10 @@ def read_patches_into(h, out: dict[str, np.ndarray]) -> None:
 
 
 def read_calibration(h) -> dict[str, np.ndarray]:
-    """{'frame_index' (per patch), 'light_dirs', 'crosstalk' (per frame)} of an open shard."""
-    return {"frame_index": h[K.PATCH_FRAME_INDEX][()], "light_dirs": h[K.FRAME_LIGHT_DIRS][()],
+    """{'frame_index', 'yx' (per patch: its frame, its top-left corner there), 'light_dirs', 'crosstalk'
+    (per frame)} of an open shard."""
+    return {"frame_index": h[K.PATCH_FRAME_INDEX][()], "yx": h[K.PATCH_YX][()].astype(np.int64),
+            "light_dirs": h[K.FRAME_LIGHT_DIRS][()],
             "crosstalk": h[K.FRAME_CROSSTALK][()]}
 
 

@@ -30,7 +30,7 @@ from msps_render.dataset import Manifest, load_manifest
 from msps_render.errors import InputError
 from msps_render.models.baseline import lambertian_ps
 from msps_render.models.metrics import angular_error_deg, error_stats
-from msps_render.models import refine, selfcal, symmetry
+from msps_render.models import refine, segments, selfcal, symmetry
 from msps_render.models.report import (PER_OBJECT_NOTE, error_histogram, per_object_detail, write_plots,
                                        write_tables)
 
@@ -64,12 +64,19 @@ class Method:
     selfcal: bool = False  # divide out the frame's fitted albedo colour first (models/selfcal.py)
     refine: bool = False  # refine the network's normals by the Lambertian closed form (models/refine.py)
     mirror: bool = False  # average with the prediction of the mirrored image (models/symmetry.py)
+    segments: bool = False  # after selfcal, divide out each colour region's albedo (models/segments.py)
 
     @property
     def base_key(self) -> tuple:
         """Methods with the same key predict the same normals before the refinement: a `+refine`
         twin reuses its base method's prediction (`patch_predictions`, `frame_predictions`)."""
-        return self.kind, id(self.model), self.selfcal, self.mirror
+        return self.kind, id(self.model), self.selfcal, self.segments, self.mirror
+
+    def object_albedo(self, f: "FrameFit") -> refine.ObjectAlbedo:
+        """The refinement's albedo estimate of the frame as this method sees it."""
+        if self.segments:
+            return f.albedo_segments
+        return f.albedo_selfcal if self.selfcal else f.albedo
 
     def patches(self, b, fits: list["FrameFit"] | None = None) -> np.ndarray:
         """(B, 3, P, P) normals for a batch dict; `fits`: each patch's frame-level fits (`frame_fits`)."""
@@ -81,7 +88,13 @@ class Method:
         image = b["image"]
         if (self.selfcal or self.refine) and fits is None:
             raise ValueError(f"{self.name}: self-calibration and refinement need the frames' fits")
-        if self.selfcal:
+        if self.segments:
+            import torch
+
+            P = image.shape[-1]
+            maps = np.stack([f.segment_map(y, x, P) for f, (y, x) in zip(fits, b["yx"].numpy())])
+            image = image * torch.from_numpy(maps.transpose(0, 3, 1, 2).astype(np.float32))
+        elif self.selfcal:
             import torch
 
             scale = np.stack([f.scale for f in fits]).astype(np.float32)
@@ -119,7 +132,7 @@ class Method:
             mk = b["mask"][i, 0].numpy() > 0
             n, n3, n2 = refine.refine_pixels(image[i].transpose(1, 2, 0)[mk], pred[i].transpose(1, 2, 0)[mk],
                                              b["light_dirs"][i].numpy(), b["crosstalk"][i].numpy(),
-                                             f.albedo_selfcal if self.selfcal else f.albedo)
+                                             self.object_albedo(f))
             if n3 or n2:
                 o = out[i].transpose(1, 2, 0)  # a view: writes go to out
                 o[mk] = n
@@ -130,8 +143,12 @@ class Method:
 
     def unrefined_frame(self, fr) -> tuple[np.ndarray, np.ndarray]:
         """(the frame's image as the method sees it, its normals before any refinement)."""
-        image = selfcal.self_calibrated(fr.image, fr.mask, fr.light_dirs, fr.crosstalk) if self.selfcal \
-            else fr.image
+        if self.segments:
+            image = segments.calibrated(fr.image, fr.mask, fr.light_dirs, fr.crosstalk)
+        elif self.selfcal:
+            image = selfcal.self_calibrated(fr.image, fr.mask, fr.light_dirs, fr.crosstalk)
+        else:
+            image = fr.image
         if self.kind == LAMBERTIAN:
             return image, lambertian_ps(image, fr.light_dirs, fr.crosstalk, fr.mask)
         from msps_render.models.predict import predict_image
@@ -178,6 +195,15 @@ def with_selfcal(methods: list[Method]) -> list[Method]:
     return list(methods) + twins
 
 
+def with_segments(methods: list[Method]) -> list[Method]:
+    """Each method without selfcal, then again after selfcal and the segment-wise self-calibration
+    ("NAME+selfcal+segments")."""
+    twins = [replace(m, name=m.name + selfcal.SUFFIX + segments.SUFFIX, selfcal=True, segments=True,
+                     info={**m.info, "description": f"{m.info.get('description', m.name)}, {segments.DESCRIPTION}"})
+             for m in methods if not m.selfcal]
+    return list(methods) + twins
+
+
 def with_mirror(methods: list[Method]) -> list[Method]:
     """Each method, then each network again averaged with its mirror-image prediction ("NAME+mirror")."""
     twins = [replace(m, name=m.name + symmetry.SUFFIX, mirror=True,
@@ -201,9 +227,18 @@ class FrameFit:
     scale: np.ndarray  # (3,) the self-calibration's colour factor (models/selfcal.py)
     albedo: refine.ObjectAlbedo  # the refinement's albedo estimate on the image as rendered
     albedo_selfcal: refine.ObjectAlbedo  # ... after the colour factor
+    segment_scale: np.ndarray | None = None  # (H, W, 3) selfcal then segment-wise factors (models/segments.py)
+    albedo_segments: refine.ObjectAlbedo | None = None  # ... the refinement's estimate after them
+
+    def segment_map(self, y: int, x: int, size: int) -> np.ndarray:
+        """(size, size, 3) factors of the patch at (y, x)."""
+        if self.segment_scale is None:
+            raise ValueError("frame fits made without segments (frame_fits(..., segments=True))")
+        return self.segment_scale[y:y + size, x:x + size]
 
 
-def frame_fits(data: Path, condition: str, why: str = "--selfcal") -> dict[tuple[str, int], FrameFit]:
+def frame_fits(data: Path, condition: str, why: str = "--selfcal",
+               segment_fits: bool = False) -> dict[tuple[str, int], FrameFit]:
     """(shard file name, frame index) -> the frame's fits, for scoring patches as whole frames are."""
     from msps_render.data import iter_frames
 
@@ -215,9 +250,13 @@ def frame_fits(data: Path, condition: str, why: str = "--selfcal") -> dict[tuple
     fits = {}
     for fr in frames:
         scale = selfcal.fit_albedo_colour(fr.image, fr.mask, fr.light_dirs, fr.crosstalk).scale
+        seg = alb_seg = None
+        if segment_fits:
+            seg = segments.fit_segments(fr.image * scale, fr.mask, fr.light_dirs, fr.crosstalk).scale * scale
+            alb_seg = refine.estimate_albedo(fr.image * seg, fr.mask, fr.light_dirs, fr.crosstalk)
         fits[(fr.shard, fr.index)] = FrameFit(
             scale, refine.estimate_albedo(fr.image, fr.mask, fr.light_dirs, fr.crosstalk),
-            refine.estimate_albedo(fr.image * scale, fr.mask, fr.light_dirs, fr.crosstalk))
+            refine.estimate_albedo(fr.image * scale, fr.mask, fr.light_dirs, fr.crosstalk), seg, alb_seg)
     return fits
 
 
@@ -238,7 +277,7 @@ def checkpoint_method(path: str | Path, name: str | None = None) -> Method:
 
 
 def resolve_methods(checkpoints=(), methods=(), selfcal: bool = False, refine: bool = False,
-                    mirror: bool = False) -> list[Method]:
+                    mirror: bool = False, segments: bool = False) -> list[Method]:
     """`msps eval --checkpoint [NAME=]PATH ... --method net|lambertian ...` -> the methods, checkpoints first.
 
     `net` stands for the checkpoints given (the shipped one when none is); checkpoints imply `net`, so
@@ -276,7 +315,9 @@ def resolve_methods(checkpoints=(), methods=(), selfcal: bool = False, refine: b
         out.append(m)
     if LAMBERTIAN in kinds:
         out.append(lambertian_method())
+    base = out
     out = with_selfcal(out) if selfcal else out
+    out = out + with_segments(base)[len(base):] if segments else out
     out = with_mirror(out) if mirror else out
     return with_refine(out) if refine else out
 
@@ -336,7 +377,8 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
         usum: dict = defaultdict(lambda: np.zeros(len(methods)))
         upix: dict = defaultdict(float)
         seen = 0
-        fits = frame_fits(data, cond, "--selfcal" if any(m.selfcal for m in methods) else "--refine") \
+        fits = frame_fits(data, cond, "--selfcal" if any(m.selfcal for m in methods) else "--refine",
+                          segment_fits=any(m.segments for m in methods)) \
             if any(m.selfcal or m.refine for m in methods) else None
         for b in make_loader(ds, 64, shuffle=False):
             g = b["normal"].numpy()

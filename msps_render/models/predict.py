@@ -196,7 +196,8 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
                  method: str = "net", mask: str | Path | None = None, calibration: str | Path | None = None,
                  light_dirs: str | None = None, crosstalk: str | None = None, warn=None,
                  linear: bool | None = None, normal_gt: str | Path | None = None, panel: bool = True,
-                 selfcal: bool = False, refine: bool = False, mirror: bool = False) -> list[Path]:
+                 selfcal: bool = False, refine: bool = False, mirror: bool = False,
+                 segments: bool = False) -> list[Path]:
     """Write OUT.npy (H, W, 3 normals), OUT.png (visualisation) and OUT-panel.png (input, prediction;
     with `normal_gt` also the ground truth and the error map, and OUT-metrics.json with the MAE).
 
@@ -217,14 +218,21 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
         from msps_render.models.symmetry import mirror_ensemble, require_mirror
 
         sym = require_mirror(L, M)  # before any work
-    fit = None
-    if selfcal:
+    fit = sfit = None
+    if selfcal or segments:
         from msps_render.models.selfcal import apply_colour_fit, fit_albedo_colour
 
         if not calibrated:
-            warn("--selfcal without --calibration: fitting the colour under the paper's lights")
+            warn(f"{'--segments' if segments else '--selfcal'} without --calibration: fitting the colour under "
+                 "the paper's lights")
         fit = fit_albedo_colour(img, mk, L, M)
         img_in = apply_colour_fit(img, fit)
+        if segments:  # after the object-level fit: only objects it leaves alone are cut into colour regions
+            from msps_render.models.segments import fit_segments
+
+            sfit = fit_segments(img_in, mk, L, M)
+            if sfit.applied:
+                img_in = (img_in * sfit.scale).astype(img_in.dtype)
     else:
         img_in = img
     if method == "lambertian":
@@ -259,6 +267,8 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
                 else " +refine (not one albedo: kept)"
     if fit is not None:
         label += " +selfcal " + ("x" + "/".join(f"{v:.2f}" for v in fit.scale) if fit.applied else "(grey kept)")
+    if sfit is not None:
+        label += (f" +segments ({len(sfit.accepted)} regions)" if sfit.applied else " +segments (not applied)")
     paths = out_paths(out)
     paths["npy"].parent.mkdir(parents=True, exist_ok=True)
     np.save(paths["npy"], n.astype(np.float32))
@@ -278,6 +288,9 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
                    "selfcal": None if fit is None else {"applied": fit.applied, "scale": fit.scale.tolist(),
                                                         "grey_rms": fit.grey_rms, "colour_rms": fit.colour_rms,
                                                         "share": fit.share, "grey_share": fit.grey_share},
+                   "segments": None if sfit is None else {"applied": sfit.applied, "regions": len(sfit.accepted),
+                                                          "object_share": sfit.object_share,
+                                                          "reason": sfit.reason},
                    "refine": None if not refine else {"n_three": rstats.n_three, "n_two": rstats.n_two,
                                                       "rho": rstats.albedo.rho, "uniform": rstats.albedo.uniform},
                    "n_mask_pixels": int(mk.sum()), "n_left_out": int((mk & ~valid).sum())}

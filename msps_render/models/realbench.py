@@ -76,6 +76,17 @@ class Method:
     warnings: Callable[[RealObject], list[str]] = lambda obj: []
     network: bool = True  # a network's normals (what --refine refines); False for the Lambertian baseline
     selfcal: bool = False  # predicts on the self-calibrated image
+    segments: bool = False  # ... after the segment-wise self-calibration too (models/segments.py)
+
+    def calibrated(self, o: "RealObject") -> np.ndarray:
+        """The object's image as this method sees it (what --refine then refines on)."""
+        from msps_render.models import segments, selfcal
+
+        if self.segments:
+            return segments.calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)
+        if self.selfcal:
+            return selfcal.self_calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)
+        return o.image
 
 
 @dataclass
@@ -214,18 +225,33 @@ def with_selfcal(methods: list[Method]) -> list[Method]:
     return list(methods) + [twin(m) for m in methods]
 
 
+def with_segments(methods: list[Method]) -> list[Method]:
+    """Each method without selfcal, then again after the object-level and segment-wise self-calibration."""
+    from dataclasses import replace
+
+    from msps_render.models import segments, selfcal
+
+    def twin(m: Method) -> Method:
+        out = Method(m.name + selfcal.SUFFIX + segments.SUFFIX, lambda o: m.predict(o),
+                     {**m.info, "kind": f"{m.info.get('kind', m.name)}, {segments.DESCRIPTION}"}, m.warnings,
+                     network=m.network, selfcal=True, segments=True)
+        out.predict = lambda o: m.predict(replace(o, image=out.calibrated(o)))
+        return out
+
+    return list(methods) + [twin(m) for m in methods if not m.selfcal]
+
+
 def with_refine(methods: list[Method]) -> list[Method]:
     """Each method, then each network again with the Lambertian refinement after it (models/refine.py)."""
-    from msps_render.models import refine, selfcal
+    from msps_render.models import refine
 
     def twin(m: Method) -> Method:
         def predict(o: RealObject) -> np.ndarray:
-            img = selfcal.self_calibrated(o.image, o.mask, o.light_dirs, o.crosstalk) if m.selfcal else o.image
-            return refine.refine_normals(img, o.mask, m.predict(o), o.light_dirs, o.crosstalk)[0]
+            return refine.refine_normals(m.calibrated(o), o.mask, m.predict(o), o.light_dirs, o.crosstalk)[0]
 
         return Method(m.name + refine.SUFFIX, predict,
                       {**m.info, "kind": f"{m.info.get('kind', m.name)}, {refine.DESCRIPTION}"}, m.warnings,
-                      network=True, selfcal=m.selfcal)
+                      network=True, selfcal=m.selfcal, segments=m.segments)
 
     return list(methods) + [twin(m) for m in methods if m.network]
 
@@ -436,7 +462,8 @@ def write_report(bench: RealBench, objects: list[RealObject], out: Path, setting
 
 def run_bench_real(folders, out: str | Path, checkpoints=(), slant_deg: float = 30.0,
                    tilts_deg=(0.0, 120.0, 240.0), crosstalk: np.ndarray | None = None, skip=(),
-                   srgb: bool = False, warn=None, selfcal: bool = False, refine: bool = False) -> RealBench:
+                   srgb: bool = False, warn=None, selfcal: bool = False, refine: bool = False,
+                   segments: bool = False) -> RealBench:
     """Validate OUT and every folder, load every checkpoint, evaluate, then write OUT all-or-nothing."""
     from msps_render.calibration import PAPER_CROSSTALK
     from msps_render.io.staging import check_new_out, staged_dir
@@ -455,14 +482,17 @@ def run_bench_real(folders, out: str | Path, checkpoints=(), slant_deg: float = 
     specs = parse_checkpoints(checkpoints)
     objects = [load_real_object(f, slant_deg, tilts_deg, M, skips[n], srgb, name=n) for f, n in zip(folders, names)]
     methods = [net_method(n, p) for n, p in specs] + [lambertian_method()]
+    base = methods
     if selfcal:
         methods = with_selfcal(methods)
+    if segments:
+        methods = methods + with_segments(base)[len(base):]
     if refine:
         methods = with_refine(methods)
     bench = evaluate_real(objects, methods, warn)
     settings = {"slant_deg": float(slant_deg), "tilts_deg": [float(t) for t in tilts_deg],
                 "crosstalk": M.tolist(), "srgb": bool(srgb), "skip": [str(s) for s in skip or ()],
-                "selfcal": bool(selfcal), "refine": bool(refine)}
+                "selfcal": bool(selfcal), "segments": bool(segments), "refine": bool(refine)}
     with staged_dir(out) as stage:
         write_report(bench, objects, stage, settings)
     bench.summary["settings"] = settings
