@@ -230,3 +230,18 @@ def test_trained_geometry_comes_from_the_checkpoint_or_the_model_card(tmp_path):
     predict_main(tmp_path / "img.npy", tmp_path / "p", checkpoint=ck, light_dirs=json.dumps(L30.tolist()),
                  warn=warns.append)
     assert any("differs from the 40 deg the network was trained for" in w for w in warns), warns
+
+
+def test_a_warm_start_keeps_the_init_checkpoints_light_range():
+    """A fine-tune at slant 30 from a network trained at 20-40 deg has seen 20-40: the checkpoint says so
+    (else `msps predict` warns on slants the network handles); a different rig keeps the run's own record."""
+    from msps_render.dataset.manifest import merge_training_lights
+    from msps_render.scene.lights import PAPER_CROSSTALK
+
+    run = {"slant_deg": [30.0, 30.0], "tilts_deg": [0, 120, 240], "crosstalk": PAPER_CROSSTALK.tolist(),
+           "source": "training data manifests"}
+    init = {**run, "slant_deg": [20.0, 40.0]}
+    assert merge_training_lights(run, init)["slant_deg"] == [20.0, 40.0]
+    assert merge_training_lights(run, None) == run and merge_training_lights(None, init) is None
+    assert merge_training_lights(run, {**init, "tilts_deg": [60, 180, 300]}) == run
+    assert merge_training_lights(run, {**init, "crosstalk": np.eye(3).tolist()}) == run

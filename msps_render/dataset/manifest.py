@@ -10,6 +10,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from msps_render.atomic import atomic_write
 from msps_render.errors import InputError, not_a_dataset
 
@@ -139,6 +141,23 @@ def training_lights(roots) -> dict | None:
         hi.append(rng[1] if rng else lc["slant_deg"])
         tilts, M = tilts or lc.get("tilts_deg"), M or lc.get("crosstalk")
     return {"slant_deg": [min(lo), max(hi)], "tilts_deg": tilts, "crosstalk": M,
+            "source": "training data manifests"}
+
+
+def merge_training_lights(run: dict | None, init: dict | None) -> dict | None:
+    """The light geometry a warm-started network has seen: its init checkpoint's and this run's data.
+
+    Why: a fine-tune on slant-30 data from a model trained at 20-40 deg still knows 20-40; recording
+    only the fine-tune's data would make `msps predict` warn on geometries the network handles.  Only
+    the slant range is widened, and only when tilts and crosstalk agree (else the run's record stands)."""
+    if not run or not init:
+        return run
+    same = (np.allclose(run.get("tilts_deg") or [], init.get("tilts_deg") or [])
+            and np.allclose(run.get("crosstalk") or [], init.get("crosstalk") or []))
+    if not same:
+        return run
+    return {**run, "slant_deg": [min(run["slant_deg"][0], init["slant_deg"][0]),
+                                 max(run["slant_deg"][1], init["slant_deg"][1])],
             "source": "training data manifests"}
 
 

@@ -159,6 +159,9 @@ def start_run(run: Run, resume: bool, init: str | Path | None) -> None:
             widen_inputs(run.model, ick["model"])
         else:
             run.model.load_state_dict(ick["model"])
+        from msps_render.dataset.manifest import merge_training_lights
+
+        run.train_lights = merge_training_lights(run.train_lights, ick.get("train_lights"))
         run.state["init_from"] = f"{Path(init).name} sha1:{_sha1(init)[:12]}"
 
 
