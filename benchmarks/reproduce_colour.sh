@@ -240,3 +240,44 @@ for m in 11d="$RUNS/albedo-lamb-v04/last.pt" 11dc="$RUNS/albedo-lamb-v04-control
     --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" \
     --model "$m" --out "$RUNS/report-11-$n"
 done
+
+# ---- stage 12 (docs/reproducing.md "Stage 12") ------------------------------------------------------------
+# 12a / 12b: stage 11d's recipe at a smaller tint dose (12a: share 0.10, 4,000 steps; 12b: share 0.25, 2,000 steps)
+for spec in s12a:0.10:4000 s12b:0.25:2000; do
+  IFS=: read -r name share steps <<< "$spec"
+  out="$RUNS/$name"; resume=""; [ -f "$out/last.pt" ] && resume="--resume"
+  $MSPS train cpu --threads 2 --data "$DATA/train-grey-30" --data "$DATA/blobs-48" --val "$DATA/val" \
+    --init models/dualcue-cpu-v0.4.pt --out "$out" $resume --set train.freeze_bn=true --set train.shuffle_window=0 \
+    --set train.cache=true --set train.albedo_aug=$share --set train.albedo_aug_scope=lambertian \
+    --set train.max_minutes=60 --set train.max_steps=$steps --set train.lr=1e-4 --set train.val_every=500 \
+    --set train.val_max_patches=1500
+done
+for m in 12a="$RUNS/s12a/last.pt" 12b="$RUNS/s12b/last.pt"; do
+  n=${m%%=*}
+  [ -f "$RUNS/report-11-$n/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --refine \
+    --data "$DATA/unseen-test-grey" --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" \
+    --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" \
+    --model "$m" --out "$RUNS/report-11-$n"
+  [ -f "$RUNS/real-11-$n/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-11-$n" \
+    --selfcal --refine --checkpoint "$m"
+  [ -f "$RUNS/blob-11-$n.txt" ] || $PY benchmarks/blob_check.py --model "$m" > "$RUNS/blob-11-$n.txt"
+  [ -f "$RUNS/eval-11-env-$n/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
+    --checkpoint "$m" --method lambertian --out "$RUNS/eval-11-env-$n"
+  [ -f "$RUNS/claims-$n.json" ] || $PY benchmarks/shipped_claims.py --model "$m" --out "$RUNS/claims-$n.json"
+done
+# the segment-wise self-calibration: thresholds on validation frames only, then the test sets
+for p in val-frames-texture val-frames-grey val-frames-colour; do
+  $MSPS render "$p" --out "$DATA/$p" --workers 2 --resume --quiet
+done
+[ -f "$RUNS/segment-sweep.json" ] || $PY benchmarks/segment_sweep.py --data "$DATA/val-frames-texture" \
+  --data "$DATA/val-frames-grey" --data "$DATA/val-frames-colour" --model models/dualcue-cpu-v0.4.pt \
+  --out "$RUNS/segment-sweep.json"
+for m in v04=models/dualcue-cpu-v0.4.pt 12a="$RUNS/s12a/last.pt" 6a=models/dualcue-cpu-colour.pt; do
+  n=${m%%=*}
+  [ -f "$RUNS/report-12seg-$n/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --segments --refine \
+    --data "$DATA/unseen-test-grey" --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" \
+    --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" \
+    --model "$m" --out "$RUNS/report-12seg-$n"
+  [ -f "$RUNS/real-12seg-$n/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG \
+    --out "$RUNS/real-12seg-$n" --selfcal --segments --refine --checkpoint "$m"
+done

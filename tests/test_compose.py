@@ -245,3 +245,29 @@ def test_a_warm_start_keeps_the_init_checkpoints_light_range():
     assert merge_training_lights(run, None) == run and merge_training_lights(None, init) is None
     assert merge_training_lights(run, {**init, "tilts_deg": [60, 180, 300]}) == run
     assert merge_training_lights(run, {**init, "crosstalk": np.eye(3).tolist()}) == run
+
+
+def test_export_checkpoint_strips_training_state(tmp_path):
+    """A shipped model keeps weights, config and provenance, drops optimizer and RNG state, and takes the
+    widened light range; it loads and predicts exactly as the training checkpoint does."""
+    torch = pytest.importorskip("torch")
+    from msps_render.models.checkpoint import export_checkpoint, load_checkpoint, save_checkpoint
+    from msps_render.models.net import DualCueNet
+    from msps_render.models.presets import load_model_config
+
+    cfg = load_model_config("cpu")
+    net = DualCueNet(cfg.net_config())
+    opt = torch.optim.Adam(net.parameters())
+    lights = {"slant_deg": [30.0, 30.0], "tilts_deg": [0, 120, 240], "crosstalk": np.eye(3).tolist(),
+              "source": "training data manifests"}
+    src = save_checkpoint(tmp_path / "last.pt", net, cfg, {"optimizer": opt.state_dict(), "torch_rng": torch.get_rng_state(),
+                                                           "state": {"step": 7, "batch_in_epoch": 3}, "train_lights": lights})
+    dst = export_checkpoint(src, tmp_path / "ship.pt", {**lights, "slant_deg": [20.0, 40.0]})
+    ck = torch.load(dst, weights_only=True)
+    assert "optimizer" not in ck and "torch_rng" not in ck and ck["state"] == {"step": 7}
+    assert ck["train_lights"]["slant_deg"] == [20.0, 40.0]
+    assert dst.stat().st_size < src.stat().st_size
+    x = torch.rand(1, 3, 40, 40)
+    mk = torch.ones(1, 1, 40, 40)
+    a, b = load_checkpoint(src)[0], load_checkpoint(dst)[0]
+    assert torch.equal(a(x, mk)[0], b(x, mk)[0])

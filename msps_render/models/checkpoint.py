@@ -48,3 +48,20 @@ def load_checkpoint(path: str | Path, expect_preset: str | None = None, map_loca
         raise InputError(p, f"weights do not fit the '{cfg.preset}' network ({brief(str(e), 100)})") from None
     model.eval()
     return model, cfg, ck
+
+
+TRAINING_ONLY = ("optimizer", "torch_rng")  # what resuming needs and a shipped model does not
+
+
+def export_checkpoint(src: str | Path, dst: str | Path, train_lights: dict | None = None) -> Path:
+    """A training checkpoint as a shipped model: weights, config, provenance; no optimizer or RNG state
+    (a third of the size).  `train_lights` replaces the recorded light geometry (e.g. widened to what an
+    --init checkpoint had seen, `dataset.manifest.merge_training_lights`)."""
+    _, _, ck = load_checkpoint(src)  # validates the file
+    out = {k: v for k, v in ck.items() if k not in TRAINING_ONLY}
+    out["state"] = {k: v for k, v in ck.get("state", {}).items() if k != "batch_in_epoch"}
+    if train_lights is not None:
+        out["train_lights"] = train_lights
+    with atomic_write(Path(dst)) as tmp:
+        torch.save(out, tmp)
+    return Path(dst)

@@ -40,6 +40,7 @@ class SegmentSettings:
     min_share: float = 0.8  # share of a region's pixels at one albedo after its factor
     min_regions: int = 2  # accepted regions needed (one region is the object-level fit, which refused)
     object_share: float = 0.8  # share of the object's lit pixels at one albedo after the factors
+    local_floor: int = 0  # > 0: the lit floor is relative to each channel's maximum within this window (px)
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,9 @@ def colour_regions(image: np.ndarray, mask: np.ndarray, settings: SegmentSetting
     c = np.asarray(image, np.float64)
     m = np.asarray(mask, bool)
     top = np.percentile(c[m], 99.0, axis=0) if m.any() else np.ones(3)
+    if settings.local_floor > 0:  # a dark patch is lit against its own brightness, not the object's brightest
+        top = np.stack([ndimage.maximum_filter(np.where(m, np.minimum(c[..., k], top[k]), 0.0),
+                                               size=settings.local_floor) for k in range(3)], -1)
     lit = m & (c > settings.rel_floor * np.maximum(top, 1e-12)).all(-1)
     logc = np.log(np.maximum(c, 1e-6))
     grad = np.zeros(m.shape)
