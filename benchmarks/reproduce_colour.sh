@@ -207,8 +207,9 @@ for share in 0.5 1.0; do
     --set train.albedo_aug_scope=lambertian --set train.max_minutes=60 --set train.max_steps=7685 \
     --set train.lr=1e-4 --set train.val_every=500 --set train.val_max_patches=1500
 done
-for m in v0.4=models/dualcue-cpu-v0.4.pt 11a="$RUNS/albedo-lamb/last.pt" 11b="$RUNS/albedo-lamb-1/last.pt"; do
-  n=${m%%=*}; ck=${m#*=}
+# stage 11-12 evaluation of one NAME=CHECKPOINT: the six unseen sets, DiLiGenT, blobs, environment light
+evaluate_candidate() {
+  local m=$1 n=${1%%=*}
   [ -f "$RUNS/report-11-$n/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --refine \
     --data "$DATA/unseen-test-grey" --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" \
     --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" \
@@ -218,6 +219,9 @@ for m in v0.4=models/dualcue-cpu-v0.4.pt 11a="$RUNS/albedo-lamb/last.pt" 11b="$R
   [ -f "$RUNS/blob-11-$n.txt" ] || $PY benchmarks/blob_check.py --model "$m" > "$RUNS/blob-11-$n.txt"
   [ -f "$RUNS/eval-11-env-$n/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
     --checkpoint "$m" --method lambertian --out "$RUNS/eval-11-env-$n"
+}
+for m in v0.4=models/dualcue-cpu-v0.4.pt 11a="$RUNS/albedo-lamb/last.pt" 11b="$RUNS/albedo-lamb-1/last.pt"; do
+  evaluate_candidate "$m"
 done
 # the field self-calibration probe (a negative result: the unit-norm constraint cannot pin a colour field)
 [ -f "$RUNS/field-selfcal.json" ] || $PY benchmarks/field_selfcal_probe.py --data "$DATA/unseen-test-smooth" \
@@ -253,18 +257,12 @@ for spec in s12a:0.10:4000 s12b:0.25:2000; do
     --set train.val_max_patches=1500
 done
 for m in 12a="$RUNS/s12a/last.pt" 12b="$RUNS/s12b/last.pt"; do
-  n=${m%%=*}
-  [ -f "$RUNS/report-11-$n/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --refine \
-    --data "$DATA/unseen-test-grey" --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" \
-    --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" \
-    --model "$m" --out "$RUNS/report-11-$n"
-  [ -f "$RUNS/real-11-$n/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-11-$n" \
-    --selfcal --refine --checkpoint "$m"
-  [ -f "$RUNS/blob-11-$n.txt" ] || $PY benchmarks/blob_check.py --model "$m" > "$RUNS/blob-11-$n.txt"
-  [ -f "$RUNS/eval-11-env-$n/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
-    --checkpoint "$m" --method lambertian --out "$RUNS/eval-11-env-$n"
-  [ -f "$RUNS/claims-$n.json" ] || $PY benchmarks/shipped_claims.py --model "$m" --out "$RUNS/claims-$n.json"
+  evaluate_candidate "$m"
 done
+# 12a ships as v0.5 (the rule in docs/reproducing.md "Stage 12"): its claims, then the export
+[ -f "$RUNS/claims-12a.json" ] || $PY benchmarks/shipped_claims.py --model 12a="$RUNS/s12a/last.pt" --out "$RUNS/claims-12a.json"
+[ -f models/dualcue-cpu-v0.5.pt ] || $PY benchmarks/ship_model.py "$RUNS/s12a/last.pt" models/dualcue-cpu-v0.5.pt \
+  --init models/dualcue-cpu-v0.4.pt
 # the segment-wise self-calibration: thresholds on validation frames only, then the test sets
 for p in val-frames-texture val-frames-grey val-frames-colour; do
   $MSPS render "$p" --out "$DATA/$p" --workers 2 --resume --quiet

@@ -19,7 +19,7 @@ from cli_helpers import cli, render_tiny
 from msps_render.models.baseline import lambertian_ps, unshadowed
 from msps_render.models.metrics import angular_error_deg
 from msps_render.models.segments import SegmentSettings, calibrated, colour_regions, fit_segments
-from test_selfcal import COLOUR_SET, L, M, SATURATED, render, sphere
+from test_selfcal import COLOUR_SET, L, M, SATURATED, render, sphere, write_predict_inputs
 
 PATCH_COLOURS = np.array([[0.9, 0.3, 0.1], [0.1, 0.5, 0.9], [0.6, 0.8, 0.2], [0.5, 0.15, 0.6]])
 
@@ -120,13 +120,7 @@ def test_rendered_patches_through_msps_eval(tmp_path):
 
 def test_predict_segments_on_a_patched_sphere(tmp_path):
     n, mask = sphere(96)
-    np.save(tmp_path / "img.npy", render(n, mask, quadrant_albedo(96)))
-    np.save(tmp_path / "gt.npy", n.astype(np.float32))
-    from msps_render.io.images import write_png
-
-    write_png(tmp_path / "mask.png", (mask * 255).astype(np.uint8))
-    rig = ["--light-dirs", json.dumps(L.tolist()), "--crosstalk", json.dumps(M.tolist()), "--method", "lambertian",
-           "--mask", tmp_path / "mask.png", "--normal-gt", tmp_path / "gt.npy"]
+    rig = write_predict_inputs(tmp_path, render(n, mask, quadrant_albedo(96)), n, mask)
     maes = {}
     for flag in ("--selfcal", "--segments"):
         r = cli("predict", tmp_path / "img.npy", "--out", tmp_path / f"out{flag}", *rig, flag)

@@ -184,16 +184,22 @@ def test_selfcal_without_whole_frames_is_one_clear_error(tmp_path):
     assert not (tmp_path / "ev" / "metrics.json").exists()
 
 
+def write_predict_inputs(tmp_path, image: np.ndarray, normal: np.ndarray, mask: np.ndarray) -> list:
+    """img.npy, gt.npy and mask.png in tmp_path; the `msps predict` arguments for them under the rig (L, M)
+    with the Lambertian method (after them: --out and the flag under test)."""
+    from msps_render.io.images import write_png
+
+    np.save(tmp_path / "img.npy", image)
+    np.save(tmp_path / "gt.npy", normal.astype(np.float32))
+    write_png(tmp_path / "mask.png", (mask * 255).astype(np.uint8))
+    return ["--light-dirs", json.dumps(L.tolist()), "--crosstalk", json.dumps(M.tolist()), "--method", "lambertian",
+            "--mask", tmp_path / "mask.png", "--normal-gt", tmp_path / "gt.npy"]
+
+
 def test_predict_selfcal_on_a_coloured_sphere(tmp_path):
     """`msps predict --selfcal`: the fit is recorded in OUT-metrics.json and the error drops to ~0."""
     n, mask = sphere(64)
-    np.save(tmp_path / "img.npy", render(n, mask, SATURATED))
-    np.save(tmp_path / "gt.npy", n.astype(np.float32))
-    from msps_render.io.images import write_png
-
-    write_png(tmp_path / "mask.png", (mask * 255).astype(np.uint8))
-    rig = ["--light-dirs", json.dumps(L.tolist()), "--crosstalk", json.dumps(M.tolist()), "--method", "lambertian",
-           "--mask", tmp_path / "mask.png", "--normal-gt", tmp_path / "gt.npy"]
+    rig = write_predict_inputs(tmp_path, render(n, mask, SATURATED), n, mask)
     maes = {}
     for flag in ("", "--selfcal"):
         out = tmp_path / f"out{flag}"
