@@ -146,3 +146,19 @@ def test_local_floor_keeps_dark_patches_in_their_own_region():
         fit = fit_segments(img, mask, L, M, SegmentSettings(local_floor=lf))
         err[lf] = angular_error_deg(lambertian_ps(img * fit.scale, L, M, mask)[lit], n[lit]).mean()
     assert err[15] < 1.0 < err[0]
+
+
+def test_consistent_fill_picks_the_factor_that_gives_unit_albedo():
+    """Pixels outside the accepted regions: "consistent" takes, of the regions within reach, the factor under
+    which the pixel has the object's albedo; on the quadrant sphere that beats the nearest region's factor
+    (measured 4.03 vs 4.76 deg), and the regions' own pixels are untouched."""
+    n, mask = sphere(128)
+    img = render(n, mask, quadrant_albedo(128))
+    lit = unshadowed(n, L, mask)
+    fits = {f: fit_segments(img, mask, L, M, SegmentSettings(fill=f)) for f in ("nearest", "consistent")}
+    err = {f: angular_error_deg(lambertian_ps(img * fit.scale, L, M, mask)[lit], n[lit]).mean()
+           for f, fit in fits.items()}
+    assert err["consistent"] < err["nearest"] - 0.3
+    own = np.isin(fits["nearest"].labels, fits["nearest"].accepted)
+    ratio = fits["consistent"].scale[own] / fits["nearest"].scale[own]  # equal up to the exposure normalisation
+    np.testing.assert_allclose(ratio, ratio[0, 0], rtol=1e-9)

@@ -41,6 +41,9 @@ class SegmentSettings:
     min_regions: int = 2  # accepted regions needed (one region is the object-level fit, which refused)
     object_share: float = 0.8  # share of the object's lit pixels at one albedo after the factors
     local_floor: int = 0  # > 0: the lit floor is relative to each channel's maximum within this window (px)
+    fill: str = "nearest"  # pixels outside accepted regions: "nearest" region's factor, or "consistent": of the
+    #                        regions within `fill_radius`, the one whose factor gives the pixel unit albedo
+    fill_radius: float = 12.0
 
 
 @dataclass(frozen=True)
@@ -119,9 +122,7 @@ def fit_segments(image: np.ndarray, mask: np.ndarray, light_dirs: np.ndarray, cr
         accepted.append(int(r))
     if len(accepted) < max(settings.min_regions, 1):
         return SegmentFit(ones, labels, tuple(accepted), False, f"{len(accepted)} region(s) with a fit")
-    have = np.isfinite(factor[..., 0])
-    _, (iy, ix) = ndimage.distance_transform_edt(~have, return_indices=True)
-    scale = factor[iy, ix]
+    scale = _fill(factor, labels, accepted, c, B, settings)
     scale /= np.median(scale[m].mean(-1))  # keep the image's exposure: albedo ~1 becomes the median albedo
     scale[~m] = 1.0
     share = selfcal.albedo_share(np.ones(3), (c * scale)[lit], B)
@@ -129,6 +130,31 @@ def fit_segments(image: np.ndarray, mask: np.ndarray, light_dirs: np.ndarray, cr
         return SegmentFit(ones, labels, tuple(accepted), False, f"one albedo for {share:.0%} of the object after "
                           "the factors", share)
     return SegmentFit(scale, labels, tuple(accepted), True, "", share)
+
+
+def _fill(factor: np.ndarray, labels: np.ndarray, accepted: list[int], c: np.ndarray, B: np.ndarray,
+          settings: SegmentSettings) -> np.ndarray:
+    """(H, W, 3) factors everywhere: the accepted regions' own, elsewhere by `settings.fill`."""
+    from scipy import ndimage
+
+    have = np.isfinite(factor[..., 0])
+    _, (iy, ix) = ndimage.distance_transform_edt(~have, return_indices=True)
+    scale = factor[iy, ix]
+    if settings.fill != "consistent":
+        return scale
+    best = np.full(have.shape, 0.1)  # |log |b|| must beat the refinement's one-albedo tolerance
+    for r in accepted:
+        near = ~have & (ndimage.distance_transform_edt(labels != r) <= settings.fill_radius)
+        if not near.any():
+            continue
+        a = factor[labels == r][0]
+        ca = c[near] * a
+        err = np.abs(0.5 * np.log(np.maximum(np.einsum("ni,ij,nj->n", ca, B, ca), 1e-24)))
+        take = err < best[near]
+        idx = np.flatnonzero(near.ravel())[take]
+        best.ravel()[idx] = err[take]
+        scale.reshape(-1, 3)[idx] = a
+    return scale
 
 
 def calibrated(image: np.ndarray, mask: np.ndarray, light_dirs: np.ndarray, crosstalk: np.ndarray,
