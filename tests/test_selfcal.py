@@ -175,12 +175,13 @@ def test_rendered_coloured_object_through_msps_eval(tmp_path):
     assert cal["patches"]["mae_deg"] < plain["patches"]["mae_deg"] - 8.0
 
 
-def test_selfcal_without_whole_frames_is_one_clear_error(tmp_path):
+@pytest.mark.parametrize("flag", ["--selfcal", "--segments"])
+def test_selfcal_without_whole_frames_is_one_clear_error(tmp_path, flag):
     render_tiny(COLOUR_SET.replace("store_frames = true", "store_frames = false"), tmp_path)
-    r = cli("eval", "--data", tmp_path / "ds", "--out", tmp_path / "ev", "--method", "lambertian", "--selfcal")
+    r = cli("eval", "--data", tmp_path / "ds", "--out", tmp_path / "ev", "--method", "lambertian", flag)
     assert r.returncode == 1
     err = r.stderr.strip().splitlines()
-    assert len(err) == 1 and "whole frames" in err[0] and str(tmp_path / "ds") in err[0]
+    assert len(err) == 1 and "whole frames" in err[0] and str(tmp_path / "ds") in err[0] and flag in err[0]
     assert not (tmp_path / "ev" / "metrics.json").exists()
 
 

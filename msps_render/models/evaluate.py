@@ -377,7 +377,9 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
         usum: dict = defaultdict(lambda: np.zeros(len(methods)))
         upix: dict = defaultdict(float)
         seen = 0
-        fits = frame_fits(data, cond, "--selfcal" if any(m.selfcal for m in methods) else "--refine",
+        why = ("--segments" if any(m.segments for m in methods) else
+               "--selfcal" if any(m.selfcal for m in methods) else "--refine")
+        fits = frame_fits(data, cond, why,
                           segment_fits=any(m.segments for m in methods)) \
             if any(m.selfcal or m.refine for m in methods) else None
         for b in make_loader(ds, 64, shuffle=False):
