@@ -246,3 +246,20 @@ def test_selfcal_and_refine_columns(tmp_path):
     assert a["net+refine"]["mae_deg"] == a["net"]["mae_deg"]
     assert a["net+selfcal+refine"]["mae_deg"] == a["net+selfcal"]["mae_deg"]
     assert res["settings"]["refine"] is True
+
+
+def test_segments_columns(tmp_path):
+    """`--selfcal --segments --refine`: a +selfcal+segments twin of each method (after the +selfcal ones), each
+    network's refined twin refines on the image its base method saw; recorded in the settings."""
+    make_capture(tmp_path / "aPNG", seed=1)
+    out = tmp_path / "out"
+    r = cli("bench-real", tmp_path / "aPNG", "--out", out, "--selfcal", "--segments", "--refine", "--threads", "1",
+            env_extra={"OMP_NUM_THREADS": "1"})
+    assert r.returncode == 0, r.stderr
+    res = json.loads((out / "results.json").read_text())
+    assert list(res["methods"]) == ["net", "lambertian", "net+selfcal", "lambertian+selfcal", "net+selfcal+segments",
+                                    "lambertian+selfcal+segments", "net+refine", "net+selfcal+refine",
+                                    "net+selfcal+segments+refine"]
+    assert res["settings"]["segments"] is True
+    a = res["objects"]["a"]["methods"]
+    assert all(np.isfinite(a[m]["mae_deg"]) for m in res["methods"])
