@@ -45,9 +45,11 @@ def main(argv=None) -> None:
     ap.add_argument("--min-share", type=float, nargs="+", default=REGION_GRID["min_share"])
     ap.add_argument("--local-floor", type=int, nargs="+", default=REGION_GRID["local_floor"])
     ap.add_argument("--fill", nargs="+", default=["nearest"], choices=["nearest", "consistent"])
+    ap.add_argument("--rel-floor", type=float, nargs="+", default=[0.1])
+    ap.add_argument("--min-pixels", type=int, nargs="+", default=[150])
     a = ap.parse_args(argv)
     model = load_checkpoint(a.model)[0]
-    regions = list(itertools.product(a.edge, a.min_share, a.local_floor, a.fill))
+    regions = list(itertools.product(a.edge, a.min_share, a.local_floor, a.fill, a.rel_floor, a.min_pixels))
     frames = []  # per frame: set, pixels, base error sum, per region setting (n_accepted, object_share, error sum)
     for d in a.data:
         for fr in iter_frames(d):
@@ -55,10 +57,10 @@ def main(argv=None) -> None:
             img = self_calibrated(fr.image, m, fr.light_dirs, fr.crosstalk)
             err = lambda n: float(angular_error_deg(n[m], fr.normal[m]).sum())  # noqa: E731
             rec = {"set": d.name, "pixels": int(m.sum()), "base": err(_predict(model, fr, img)), "fits": []}
-            for edge, share, lf, fill in regions:
+            for edge, share, lf, fill, floor, px in regions:
                 fit = fit_segments(img, m, fr.light_dirs, fr.crosstalk,
                                    SegmentSettings(edge=edge, min_share=share, min_regions=1, object_share=0.0,
-                                                   local_floor=lf, fill=fill))
+                                                   local_floor=lf, fill=fill, rel_floor=floor, min_pixels=px))
                 e = err(_predict(model, fr, (img * fit.scale).astype(np.float32))) if fit.applied else rec["base"]
                 rec["fits"].append({"accepted": len(fit.accepted), "object_share": fit.object_share,
                                     "applied": fit.applied, "err": e})
@@ -68,10 +70,10 @@ def main(argv=None) -> None:
     sets = sorted({f["set"] for f in frames})
     rows = [{"settings": None, **{s: sum(f["base"] for f in frames if f["set"] == s)
                                   / sum(f["pixels"] for f in frames if f["set"] == s) for s in sets}}]
-    for i, (edge, share, lf, fill) in enumerate(regions):
+    for i, (edge, share, lf, fill, floor, px) in enumerate(regions):
         for k, osh in itertools.product(GATE_GRID["min_regions"], GATE_GRID["object_share"]):
-            row = {"settings": {"edge": edge, "min_share": share, "local_floor": lf, "fill": fill, "min_regions": k,
-                                "object_share": osh}}
+            row = {"settings": {"edge": edge, "min_share": share, "local_floor": lf, "fill": fill, "rel_floor": floor,
+                                "min_pixels": px, "min_regions": k, "object_share": osh}}
             for s in sets:
                 fs = [f for f in frames if f["set"] == s]
                 use = [f["fits"][i]["applied"] and f["fits"][i]["accepted"] >= k
