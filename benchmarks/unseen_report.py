@@ -34,10 +34,10 @@ def _predictors(models: list[str], selfcal: bool = False, refine: bool = False, 
     from msps_render.models.evaluate import (checkpoint_method, lambertian_method, with_mirror, with_refine,
                                              with_segments, with_selfcal)
 
-    base = [checkpoint_method(path, name) for name, path in (spec.split("=", 1) for spec in models)]
-    base.append(lambertian_method())
-    methods = with_selfcal(base) if selfcal else base
-    methods = methods + with_segments(base)[len(base):] if segments else methods
+    methods = [checkpoint_method(path, name) for name, path in (spec.split("=", 1) for spec in models)]
+    methods.append(lambertian_method())
+    methods = with_selfcal(methods) if selfcal else methods
+    methods = with_segments(methods) if segments else methods  # twins of the methods without selfcal only
     methods = with_mirror(methods) if mirror else methods
     return with_refine(methods) if refine else methods
 

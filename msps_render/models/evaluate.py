@@ -88,17 +88,13 @@ class Method:
         image = b["image"]
         if (self.selfcal or self.refine) and fits is None:
             raise ValueError(f"{self.name}: self-calibration and refinement need the frames' fits")
-        if self.segments:
+        if self.selfcal:  # the frames' factors: one colour per frame, or (segments) a map cropped per patch
             import torch
 
             P = image.shape[-1]
-            maps = np.stack([f.segment_map(y, x, P) for f, (y, x) in zip(fits, b["yx"].numpy())])
-            image = image * torch.from_numpy(maps.transpose(0, 3, 1, 2).astype(np.float32))
-        elif self.selfcal:
-            import torch
-
-            scale = np.stack([f.scale for f in fits]).astype(np.float32)
-            image = image * torch.from_numpy(scale)[:, :, None, None]
+            factor = (np.stack([f.segment_map(y, x, P) for f, (y, x) in zip(fits, b["yx"].numpy())])
+                      if self.segments else np.stack([f.scale for f in fits])[:, None, None, :])
+            image = image * torch.from_numpy(factor.transpose(0, 3, 1, 2).astype(np.float32))
         if self.kind == LAMBERTIAN:
             img = image.numpy().transpose(0, 2, 3, 1)
             out = np.stack([lambertian_ps(img[i], b["light_dirs"][i].numpy(), b["crosstalk"][i].numpy())
@@ -196,8 +192,8 @@ def with_selfcal(methods: list[Method]) -> list[Method]:
 
 
 def with_segments(methods: list[Method]) -> list[Method]:
-    """Each method without selfcal, then again after selfcal and the segment-wise self-calibration
-    ("NAME+selfcal+segments")."""
+    """Each method, then each one without selfcal again after the object-level and the segment-wise
+    self-calibration ("NAME+selfcal+segments")."""
     twins = [replace(m, name=m.name + selfcal.SUFFIX + segments.SUFFIX, selfcal=True, segments=True,
                      info={**m.info, "description": f"{m.info.get('description', m.name)}, {segments.DESCRIPTION}"})
              for m in methods if not m.selfcal]
@@ -249,10 +245,11 @@ def frame_fits(data: Path, condition: str, why: str = "--selfcal",
                                "whole frames (render a preset with store_frames = true)") from None
     fits = {}
     for fr in frames:
-        scale = selfcal.fit_albedo_colour(fr.image, fr.mask, fr.light_dirs, fr.crosstalk).scale
+        whole = selfcal.fit_albedo_colour(fr.image, fr.mask, fr.light_dirs, fr.crosstalk)
+        scale = whole.scale
         seg = alb_seg = None
-        if segment_fits:
-            seg = segments.fit_segments(fr.image * scale, fr.mask, fr.light_dirs, fr.crosstalk).scale * scale
+        if segment_fits:  # ones where the object-level fit applies (or nothing does): then `scale` alone
+            seg = segments.fit_segments(fr.image, fr.mask, fr.light_dirs, fr.crosstalk, whole=whole).scale * scale
             alb_seg = refine.estimate_albedo(fr.image * seg, fr.mask, fr.light_dirs, fr.crosstalk)
         fits[(fr.shard, fr.index)] = FrameFit(
             scale, refine.estimate_albedo(fr.image, fr.mask, fr.light_dirs, fr.crosstalk),
@@ -315,9 +312,8 @@ def resolve_methods(checkpoints=(), methods=(), selfcal: bool = False, refine: b
         out.append(m)
     if LAMBERTIAN in kinds:
         out.append(lambertian_method())
-    base = out
     out = with_selfcal(out) if selfcal else out
-    out = out + with_segments(base)[len(base):] if segments else out
+    out = with_segments(out) if segments else out  # twins of the methods without selfcal only
     out = with_mirror(out) if mirror else out
     return with_refine(out) if refine else out
 

@@ -230,7 +230,7 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
         if segments:  # after the object-level fit: only objects it leaves alone are cut into colour regions
             from msps_render.models.segments import fit_segments
 
-            sfit = fit_segments(img_in, mk, L, M)
+            sfit = fit_segments(img, mk, L, M, whole=fit)
             if sfit.applied:
                 img_in = (img_in * sfit.scale).astype(img_in.dtype)
     else:

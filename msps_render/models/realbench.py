@@ -232,11 +232,12 @@ def with_segments(methods: list[Method]) -> list[Method]:
     from msps_render.models import segments, selfcal
 
     def twin(m: Method) -> Method:
-        out = Method(m.name + selfcal.SUFFIX + segments.SUFFIX, lambda o: m.predict(o),
-                     {**m.info, "kind": f"{m.info.get('kind', m.name)}, {segments.DESCRIPTION}"}, m.warnings,
-                     network=m.network, selfcal=True, segments=True)
-        out.predict = lambda o: m.predict(replace(o, image=out.calibrated(o)))
-        return out
+        def predict(o: RealObject) -> np.ndarray:
+            return m.predict(replace(o, image=segments.calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)))
+
+        return Method(m.name + selfcal.SUFFIX + segments.SUFFIX, predict,
+                      {**m.info, "kind": f"{m.info.get('kind', m.name)}, {segments.DESCRIPTION}"}, m.warnings,
+                      network=m.network, selfcal=True, segments=True)
 
     return list(methods) + [twin(m) for m in methods if not m.selfcal]
 
@@ -482,11 +483,10 @@ def run_bench_real(folders, out: str | Path, checkpoints=(), slant_deg: float = 
     specs = parse_checkpoints(checkpoints)
     objects = [load_real_object(f, slant_deg, tilts_deg, M, skips[n], srgb, name=n) for f, n in zip(folders, names)]
     methods = [net_method(n, p) for n, p in specs] + [lambertian_method()]
-    base = methods
     if selfcal:
         methods = with_selfcal(methods)
     if segments:
-        methods = methods + with_segments(base)[len(base):]
+        methods = with_segments(methods)  # twins of the methods without selfcal only
     if refine:
         methods = with_refine(methods)
     bench = evaluate_real(objects, methods, warn)

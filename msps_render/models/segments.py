@@ -90,13 +90,14 @@ def colour_regions(image: np.ndarray, mask: np.ndarray, settings: SegmentSetting
 
 
 def fit_segments(image: np.ndarray, mask: np.ndarray, light_dirs: np.ndarray, crosstalk: np.ndarray,
-                 settings: SegmentSettings = SegmentSettings()) -> SegmentFit:
-    """Per-region albedo factors of one object (`image` (H, W, 3) linear, `mask` (H, W))."""
-    from scipy import ndimage
-
+                 settings: SegmentSettings = SegmentSettings(), whole: selfcal.ColourFit | None = None
+                 ) -> SegmentFit:
+    """Per-region albedo factors of one object (`image` (H, W, 3) linear, `mask` (H, W)); `whole`: the
+    object-level fit of the same image when the caller has it (else made here)."""
     m = np.asarray(mask, bool)
     ones = np.ones(m.shape + (3,))
-    whole = selfcal.fit_albedo_colour(image, m, light_dirs, crosstalk)
+    if whole is None:
+        whole = selfcal.fit_albedo_colour(image, m, light_dirs, crosstalk)
     if whole.applied:
         return SegmentFit(ones, np.zeros(m.shape, int), (), False, "one colour fits the object")
     if whole.grey_share >= selfcal.MIN_SHARE:
@@ -113,7 +114,7 @@ def fit_segments(image: np.ndarray, mask: np.ndarray, light_dirs: np.ndarray, cr
             continue
         sel = labels == r
         cr = c[sel]
-        a = selfcal._fit_scale(cr, B)
+        a = selfcal.fit_scale(cr, B)
         if not (np.all(a > 0) and np.all(np.isfinite(a))):
             continue
         if selfcal.albedo_share(a, cr, B) < settings.min_share:
@@ -159,7 +160,10 @@ def _fill(factor: np.ndarray, labels: np.ndarray, accepted: list[int], c: np.nda
 
 def calibrated(image: np.ndarray, mask: np.ndarray, light_dirs: np.ndarray, crosstalk: np.ndarray,
                settings: SegmentSettings = SegmentSettings()) -> np.ndarray:
-    """The image after the object-level self-calibration and then, where it applies, the segment-wise one."""
-    img = selfcal.self_calibrated(image, mask, light_dirs, crosstalk)
-    fit = fit_segments(img, mask, light_dirs, crosstalk, settings)
-    return (img * fit.scale).astype(np.asarray(image).dtype, copy=False) if fit.applied else img
+    """The image after the object-level self-calibration or, where that leaves it, the segment-wise one."""
+    whole = selfcal.fit_albedo_colour(image, mask, light_dirs, crosstalk)
+    if whole.applied:
+        return selfcal.apply_colour_fit(image, whole)
+    fit = fit_segments(image, mask, light_dirs, crosstalk, settings, whole)
+    img = np.asarray(image)
+    return (img * fit.scale).astype(img.dtype, copy=False) if fit.applied else img

@@ -58,7 +58,7 @@ def _unit_norm_residual(a: np.ndarray, c: np.ndarray, B: np.ndarray) -> np.ndarr
     return np.einsum("ni,ij,nj->n", ac, B, ac) - 1.0
 
 
-def _fit_scale(c: np.ndarray, B: np.ndarray, iters: int = 30) -> np.ndarray:
+def fit_scale(c: np.ndarray, B: np.ndarray, iters: int = 30) -> np.ndarray:
     """Least-squares a (3,) of sum_x (|A^-1 diag(a) c_x|^2 - 1)^2: linear fit of a a^T, rank-1, then Gauss-Newton."""
     X = (c[:, _IU] * c[:, _JU]) * B[_IU, _JU] * np.where(_IU == _JU, 1.0, 2.0)
     q, *_ = np.linalg.lstsq(X, np.ones(len(c)), rcond=None)
@@ -117,7 +117,7 @@ def fit_albedo_colour(image: np.ndarray, mask: np.ndarray, light_dirs: np.ndarra
     g = np.einsum("ni,ij,nj->n", c, B, c)
     s2 = g.sum() / max(g @ g, 1e-300)
     grey = float(np.sqrt(np.mean((s2 * g - 1.0) ** 2)))
-    a = _fit_scale(c, B)
+    a = fit_scale(c, B)
     colour = float(np.sqrt(np.mean(_unit_norm_residual(a, c, B) ** 2)))
     fitted = a / a.mean()
     share = albedo_share(a, c, B)
