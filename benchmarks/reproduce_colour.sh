@@ -263,7 +263,9 @@ done
 [ -f "$RUNS/claims-12a.json" ] || $PY benchmarks/shipped_claims.py --model 12a="$RUNS/s12a/last.pt" --out "$RUNS/claims-12a.json"
 [ -f models/dualcue-cpu-v0.5.pt ] || $PY benchmarks/ship_model.py "$RUNS/s12a/last.pt" models/dualcue-cpu-v0.5.pt \
   --init models/dualcue-cpu-v0.4.pt
-# the segment-wise self-calibration: thresholds on validation frames only, then the test sets
+# the segment-wise self-calibration: its bound with the TRUE regions (test ground truth; chooses nothing),
+# thresholds on validation frames only, then the test sets
+$PY benchmarks/segment_oracle.py --data "$DATA/unseen-test-patches" --model models/dualcue-cpu-v0.4.pt
 for p in val-frames-texture val-frames-grey val-frames-colour; do
   $MSPS render "$p" --out "$DATA/$p" --workers 2 --resume --quiet
 done
