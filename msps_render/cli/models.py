@@ -64,7 +64,11 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
              segments: bool = typer.Option(False, "--segments", help="also score every method after the object-"
                                            "level and then the segment-wise albedo self-calibration, which "
                                            "divides out each colour region of a textured object (a column "
-                                           "NAME+selfcal+segments each; models/segments.py)")):
+                                           "NAME+selfcal+segments each; models/segments.py)"),
+             netcal: bool = typer.Option(False, "--netcal", help="also score every network after the object-"
+                                         "level self-calibration and the albedo colour read off its own "
+                                         "normals, predicted again (NAME+selfcal+netcal; needs whole frames; "
+                                         "models/netcal.py)")):
     """Angular-error statistics, SSIM, per-object table (whole frames), robustness, for one method or
     several compared on the same frames: metrics.json, table.md (every method a column, 95 % CIs),
     error_hist.png, per_object.csv/.png (frames stored), robustness.png (sweeps)."""
@@ -74,7 +78,7 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
 
     check_writable(out, "report")
     r = evaluate(data, out, max_patches=max_patches, methods=resolve_methods(checkpoint, method, selfcal, refine, mirror,
-                                                                               segments))
+                                                                               segments, netcal))
     for line in summary_lines(r):
         typer.echo(line)
     typer.echo("wrote " + ", ".join(r["files"]))
@@ -111,7 +115,10 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
                                             "about an image axis, as the paper's; models/symmetry.py)"),
                 segments: bool = typer.Option(False, "--segments", help="after --selfcal (implied), cut a "
                                               "textured object at its colour edges and divide out each "
-                                              "region's own albedo (needs the rig; models/segments.py)")):
+                                              "region's own albedo (needs the rig; models/segments.py)"),
+                netcal: bool = typer.Option(False, "--netcal", help="after --selfcal (implied), read the "
+                                            "object's albedo colour off the network's own normals, divide it "
+                                            "out and predict again (2x the time; models/netcal.py)")):
     """Normal map of a whole image (overlapping 40x40 tiles, blended) or by the Lambertian baseline,
     with a panel PNG (input, prediction, and with --normal-gt the truth and the angular error)."""
     from msps_render.models.predict import out_paths, predict_main
@@ -120,7 +127,7 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
     check_writable(out.parent)
     files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk,
                          linear=linear, normal_gt=normal_gt, selfcal=selfcal,
-                         refine=refine, mirror=mirror, segments=segments)
+                         refine=refine, mirror=mirror, segments=segments, netcal=netcal)
     if normal_gt:
         m = json.loads(out_paths(out)["metrics"].read_text())
         if m.get("n_pixels"):
@@ -158,7 +165,11 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
                                                "Lambertian refinement after it (NAME+refine; models/refine.py)"),
                    segments: bool = typer.Option(False, "--segments", help="also score every method after the "
                                                  "object-level and the segment-wise albedo self-calibration "
-                                                 "(NAME+selfcal+segments; models/segments.py)")):
+                                                 "(NAME+selfcal+segments; models/segments.py)"),
+                   netcal: bool = typer.Option(False, "--netcal", help="also score every network after the "
+                                               "object-level self-calibration and the albedo colour read off "
+                                               "its own normals, predicted again (NAME+selfcal+netcal; "
+                                               "models/netcal.py)")):
     """Score checkpoints and calibrated Lambertian PS on real captures (validation only: never train on
     real images).  Each folder is composed as `msps compose` does (the three captures nearest the
     layout, divided by light intensity, mixed by the crosstalk); the angular error is taken over the
@@ -181,7 +192,7 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
         torch.set_num_threads(threads)
     bench = run_bench_real(captures, out, checkpoint, slant, t, M, skip, srgb,
                            warn=lambda w: typer.echo(f"warning: {w}", err=True), selfcal=selfcal,
-                           refine=refine, segments=segments)
+                           refine=refine, segments=segments, netcal=netcal)
     for line in summary_table(bench):
         typer.echo(line)
     typer.echo(f"wrote {out}/results.json, results.md, figure.png and per-object maps "

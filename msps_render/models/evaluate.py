@@ -30,7 +30,7 @@ from msps_render.dataset import Manifest, load_manifest
 from msps_render.errors import InputError
 from msps_render.models.baseline import lambertian_ps
 from msps_render.models.metrics import angular_error_deg, error_stats
-from msps_render.models import refine, segments, selfcal, symmetry
+from msps_render.models import netcal, refine, segments, selfcal, symmetry
 from msps_render.models.report import (PER_OBJECT_NOTE, error_histogram, per_object_detail, write_plots,
                                        write_tables)
 
@@ -65,15 +65,23 @@ class Method:
     refine: bool = False  # refine the network's normals by the Lambertian closed form (models/refine.py)
     mirror: bool = False  # average with the prediction of the mirrored image (models/symmetry.py)
     segments: bool = False  # after selfcal, divide out each colour region's albedo (models/segments.py)
+    netcal: bool = False  # after selfcal, divide out the colour read off its own normals, predict again
 
     @property
     def base_key(self) -> tuple:
         """Methods with the same key predict the same normals before the refinement: a `+refine`
         twin reuses its base method's prediction (`patch_predictions`, `frame_predictions`)."""
-        return self.kind, id(self.model), self.selfcal, self.segments, self.mirror
+        return self.kind, id(self.model), self.selfcal, self.segments, self.mirror, self.netcal
+
+    @property
+    def netcal_key(self) -> tuple:
+        """What the network-colour loop's result depends on (a `+refine` twin shares its base's)."""
+        return id(self.model), self.mirror
 
     def object_albedo(self, f: "FrameFit") -> refine.ObjectAlbedo:
         """The refinement's albedo estimate of the frame as this method sees it."""
+        if self.netcal:
+            return f.netcal[self.netcal_key][1]
         if self.segments:
             return f.albedo_segments
         return f.albedo_selfcal if self.selfcal else f.albedo
@@ -92,8 +100,12 @@ class Method:
             import torch
 
             P = image.shape[-1]
-            factor = (np.stack([f.segment_map(y, x, P) for f, (y, x) in zip(fits, b["yx"].numpy())])
-                      if self.segments else np.stack([f.scale for f in fits])[:, None, None, :])
+            if self.segments:
+                factor = np.stack([f.segment_map(y, x, P) for f, (y, x) in zip(fits, b["yx"].numpy())])
+            elif self.netcal:  # the loop ran on the whole frame (`frame_fits`): its colour, then this network
+                factor = np.stack([f.netcal[self.netcal_key][0] for f in fits])[:, None, None, :]
+            else:
+                factor = np.stack([f.scale for f in fits])[:, None, None, :]
             image = image * torch.from_numpy(factor.transpose(0, 3, 1, 2).astype(np.float32))
         if self.kind == LAMBERTIAN:
             img = image.numpy().transpose(0, 2, 3, 1)
@@ -147,13 +159,22 @@ class Method:
             image = fr.image
         if self.kind == LAMBERTIAN:
             return image, lambertian_ps(image, fr.light_dirs, fr.crosstalk, fr.mask)
+        predict = self.frame_predictor(fr)
+        if self.netcal:
+            normals, image, _ = netcal.calibrate(predict, image, fr.mask, fr.crosstalk @ fr.light_dirs)
+            return image, normals
+        return image, predict(image)
+
+    def frame_predictor(self, fr):
+        """image (H, W, 3) -> this network's normals of the frame (mirror-averaged with `mirror`)."""
         from msps_render.models.predict import predict_image
 
         rig = fr.crosstalk @ fr.light_dirs
         if not self.mirror:
-            return image, predict_image(self.model, image, fr.mask, rig=rig)
-        return image, symmetry.mirror_ensemble(lambda x, m: predict_image(self.model, x, m, rig=rig), image,
-                                               fr.mask, symmetry.require_mirror(fr.light_dirs, fr.crosstalk))
+            return lambda x: predict_image(self.model, x, fr.mask, rig=rig)
+        mirror = symmetry.require_mirror(fr.light_dirs, fr.crosstalk)
+        return lambda x: symmetry.mirror_ensemble(lambda y, m: predict_image(self.model, y, m, rig=rig), x,
+                                                  fr.mask, mirror)
 
     def refined_frame(self, fr, image: np.ndarray, normals: np.ndarray) -> np.ndarray:
         if not self.refine:
@@ -200,6 +221,16 @@ def with_segments(methods: list[Method]) -> list[Method]:
     return list(methods) + twins
 
 
+def with_netcal(methods: list[Method]) -> list[Method]:
+    """Each network without selfcal, then again after the object-level self-calibration and the colour read
+    off its own normals ("NAME+selfcal+netcal"; models/netcal.py)."""
+    twins = [replace(m, name=m.name + selfcal.SUFFIX + netcal.SUFFIX, selfcal=True, netcal=True,
+                     info={**m.info, "description": f"{m.info.get('description', m.name)}, {selfcal.DESCRIPTION}, "
+                                                    f"{netcal.DESCRIPTION}"})
+             for m in methods if m.kind == "net" and not m.selfcal]
+    return list(methods) + twins
+
+
 def with_mirror(methods: list[Method]) -> list[Method]:
     """Each method, then each network again averaged with its mirror-image prediction ("NAME+mirror")."""
     twins = [replace(m, name=m.name + symmetry.SUFFIX, mirror=True,
@@ -225,6 +256,7 @@ class FrameFit:
     albedo_selfcal: refine.ObjectAlbedo  # ... after the colour factor
     segment_scale: np.ndarray | None = None  # (H, W, 3) selfcal then segment-wise factors (models/segments.py)
     albedo_segments: refine.ObjectAlbedo | None = None  # ... the refinement's estimate after them
+    netcal: dict = field(default_factory=dict)  # Method.netcal_key -> ((3,) selfcal x loop factor, ObjectAlbedo)
 
     def segment_map(self, y: int, x: int, size: int) -> np.ndarray:
         """(size, size, 3) factors of the patch at (y, x)."""
@@ -233,9 +265,10 @@ class FrameFit:
         return self.segment_scale[y:y + size, x:x + size]
 
 
-def frame_fits(data: Path, condition: str, why: str = "--selfcal",
-               segment_fits: bool = False) -> dict[tuple[str, int], FrameFit]:
-    """(shard file name, frame index) -> the frame's fits, for scoring patches as whole frames are."""
+def frame_fits(data: Path, condition: str, why: str = "--selfcal", segment_fits: bool = False,
+               netcal_methods: list[Method] = ()) -> dict[tuple[str, int], FrameFit]:
+    """(shard file name, frame index) -> the frame's fits, for scoring patches as whole frames are.
+    `netcal_methods`: each runs its network-colour loop on the whole frame (a network pass or two)."""
     from msps_render.data import iter_frames
 
     try:
@@ -251,9 +284,16 @@ def frame_fits(data: Path, condition: str, why: str = "--selfcal",
         if segment_fits:  # ones where the object-level fit applies (or nothing does): then `scale` alone
             seg = segments.fit_segments(fr.image, fr.mask, fr.light_dirs, fr.crosstalk, whole=whole).scale * scale
             alb_seg = refine.estimate_albedo(fr.image * seg, fr.mask, fr.light_dirs, fr.crosstalk)
+        loops = {}
+        for m in netcal_methods:
+            if m.netcal_key not in loops:
+                img = selfcal.apply_colour_fit(fr.image, whole)
+                _, _, fit = netcal.calibrate(m.frame_predictor(fr), img, fr.mask, fr.crosstalk @ fr.light_dirs)
+                loops[m.netcal_key] = (fit.scale * scale, refine.estimate_albedo(
+                    fr.image * (fit.scale * scale), fr.mask, fr.light_dirs, fr.crosstalk))
         fits[(fr.shard, fr.index)] = FrameFit(
             scale, refine.estimate_albedo(fr.image, fr.mask, fr.light_dirs, fr.crosstalk),
-            refine.estimate_albedo(fr.image * scale, fr.mask, fr.light_dirs, fr.crosstalk), seg, alb_seg)
+            refine.estimate_albedo(fr.image * scale, fr.mask, fr.light_dirs, fr.crosstalk), seg, alb_seg, loops)
     return fits
 
 
@@ -274,7 +314,7 @@ def checkpoint_method(path: str | Path, name: str | None = None) -> Method:
 
 
 def resolve_methods(checkpoints=(), methods=(), selfcal: bool = False, refine: bool = False,
-                    mirror: bool = False, segments: bool = False) -> list[Method]:
+                    mirror: bool = False, segments: bool = False, netcal: bool = False) -> list[Method]:
     """`msps eval --checkpoint [NAME=]PATH ... --method net|lambertian ...` -> the methods, checkpoints first.
 
     `net` stands for the checkpoints given (the shipped one when none is); checkpoints imply `net`, so
@@ -314,6 +354,10 @@ def resolve_methods(checkpoints=(), methods=(), selfcal: bool = False, refine: b
         out.append(lambertian_method())
     out = with_selfcal(out) if selfcal else out
     out = with_segments(out) if segments else out  # twins of the methods without selfcal only
+    if netcal and not any(m.kind == "net" for m in out):
+        raise InputError("--netcal", "reads the colour off a network's normals: give a checkpoint or --method net "
+                                     "(the Lambertian baseline explains every colour as a tilt)")
+    out = with_netcal(out) if netcal else out  # ... of the networks without selfcal only
     out = with_mirror(out) if mirror else out
     return with_refine(out) if refine else out
 
@@ -374,9 +418,10 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
         upix: dict = defaultdict(float)
         seen = 0
         why = ("--segments" if any(m.segments for m in methods) else
+               "--netcal" if any(m.netcal for m in methods) else
                "--selfcal" if any(m.selfcal for m in methods) else "--refine")
-        fits = frame_fits(data, cond, why,
-                          segment_fits=any(m.segments for m in methods)) \
+        fits = frame_fits(data, cond, why, segment_fits=any(m.segments for m in methods),
+                          netcal_methods=[m for m in methods if m.netcal]) \
             if any(m.selfcal or m.refine for m in methods) else None
         for b in make_loader(ds, 64, shuffle=False):
             g = b["normal"].numpy()

@@ -197,7 +197,7 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
                  light_dirs: str | None = None, crosstalk: str | None = None, warn=None,
                  linear: bool | None = None, normal_gt: str | Path | None = None, panel: bool = True,
                  selfcal: bool = False, refine: bool = False, mirror: bool = False,
-                 segments: bool = False) -> list[Path]:
+                 segments: bool = False, netcal: bool = False) -> list[Path]:
     """Write OUT.npy (H, W, 3 normals), OUT.png (visualisation) and OUT-panel.png (input, prediction;
     with `normal_gt` also the ground truth and the error map, and OUT-metrics.json with the MAE).
 
@@ -207,6 +207,11 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
     warn = warn or _warn_stderr
     if refine and method == "lambertian":
         raise InputError("--refine", "refines a network's normals; the Lambertian baseline has nothing to refine")
+    if netcal and method == "lambertian":
+        raise InputError("--netcal", "reads the colour off a network's normals; the Lambertian baseline "
+                                     "explains every colour as a tilt (use --selfcal)")
+    if netcal and segments:
+        raise InputError("--netcal", "and --segments are two ways to divide out the albedo colour; give one")
     if mirror and method == "lambertian":
         raise InputError("--mirror", "averages a network's two predictions; the Lambertian baseline is already "
                                      "mirror-symmetric")
@@ -218,12 +223,12 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
         from msps_render.models.symmetry import mirror_ensemble, require_mirror
 
         sym = require_mirror(L, M)  # before any work
-    fit = sfit = None
-    if selfcal or segments:
+    fit = sfit = nfit = None
+    if selfcal or segments or netcal:
         from msps_render.models.selfcal import apply_colour_fit, fit_albedo_colour
 
         if not calibrated:
-            warn(f"{'--segments' if segments else '--selfcal'} without --calibration: fitting the colour under "
+            warn(f"{'--segments' if segments else '--netcal' if netcal else '--selfcal'} without --calibration: fitting the colour under "
                  "the paper's lights")
         fit = fit_albedo_colour(img, mk, L, M)
         img_in = apply_colour_fit(img, fit)
@@ -255,9 +260,15 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
         if min(img.shape[:2]) < 40:
             raise InputError(image, f"image is {img.shape[1]}x{img.shape[0]}; the network needs at least 40x40")
         if mirror:
-            n = mirror_ensemble(lambda x, m: predict_image(model, x, m, rig=M @ L), img_in, mk, sym)
+            net = lambda x: mirror_ensemble(lambda y, m: predict_image(model, y, m, rig=M @ L), x, mk, sym)  # noqa: E731
         else:
-            n = predict_image(model, img_in, mk, rig=M @ L)
+            net = lambda x: predict_image(model, x, mk, rig=M @ L)  # noqa: E731
+        if netcal:
+            from msps_render.models.netcal import calibrate
+
+            n, img_in, nfit = calibrate(net, img_in, mk, M @ L)
+        else:
+            n = net(img_in)
         label = f"net ({Path(ck).name})" + (" +mirror" if mirror else "")
         if refine:
             from msps_render.models.refine import refine_normals
@@ -267,6 +278,8 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
                 else " +refine (not one albedo: kept)"
     if fit is not None:
         label += " +selfcal " + ("x" + "/".join(f"{v:.2f}" for v in fit.scale) if fit.applied else "(grey kept)")
+    if nfit is not None:
+        label += " +netcal " + ("x" + "/".join(f"{v:.2f}" for v in nfit.scale) if nfit.applied else "(kept)")
     if sfit is not None:
         label += (f" +segments ({len(sfit.accepted)} regions)" if sfit.applied else " +segments (not applied)")
     paths = out_paths(out)
@@ -291,6 +304,8 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
                    "segments": None if sfit is None else {"applied": sfit.applied, "regions": len(sfit.accepted),
                                                           "object_share": sfit.object_share,
                                                           "reason": sfit.reason},
+                   "netcal": None if nfit is None else {"applied": nfit.applied, "scale": nfit.scale.tolist(),
+                                                        "agree": nfit.agree, "n_pixels": nfit.n_pixels},
                    "refine": None if not refine else {"n_three": rstats.n_three, "n_two": rstats.n_two,
                                                       "rho": rstats.albedo.rho, "uniform": rstats.albedo.uniform},
                    "n_mask_pixels": int(mk.sum()), "n_left_out": int((mk & ~valid).sum())}

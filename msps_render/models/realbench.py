@@ -77,11 +77,16 @@ class Method:
     network: bool = True  # a network's normals (what --refine refines); False for the Lambertian baseline
     selfcal: bool = False  # predicts on the self-calibrated image
     segments: bool = False  # ... after the segment-wise self-calibration too (models/segments.py)
+    netcal: bool = False  # ... after the colour read off its own normals too (models/netcal.py)
+    seen: dict = field(default_factory=dict)  # netcal: object name -> the image its last normals came from
 
     def calibrated(self, o: "RealObject") -> np.ndarray:
-        """The object's image as this method sees it (what --refine then refines on)."""
+        """The object's image as this method sees it (what --refine then refines on; with netcal, after
+        `predict(o)`: the loop's image depends on the network's own normals)."""
         from msps_render.models import segments, selfcal
 
+        if self.netcal:
+            return self.seen[o.name]
         if self.segments:
             return segments.calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)
         if self.selfcal:
@@ -242,17 +247,41 @@ def with_segments(methods: list[Method]) -> list[Method]:
     return list(methods) + [twin(m) for m in methods if not m.selfcal]
 
 
+def with_netcal(methods: list[Method]) -> list[Method]:
+    """Each network without selfcal, then again after the object-level self-calibration and the colour read
+    off its own normals (NAME+selfcal+netcal; models/netcal.py)."""
+    from dataclasses import replace
+
+    from msps_render.models import netcal, selfcal
+
+    def twin(m: Method) -> Method:
+        def predict(o: RealObject) -> np.ndarray:
+            img = selfcal.self_calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)
+            n, img, _ = netcal.calibrate(lambda x: m.predict(replace(o, image=x)), img, o.mask,
+                                         o.crosstalk @ o.light_dirs)
+            t.seen[o.name] = img
+            return n
+
+        t = Method(m.name + selfcal.SUFFIX + netcal.SUFFIX, predict,
+                   {**m.info, "kind": f"{m.info.get('kind', m.name)}, {selfcal.DESCRIPTION}, {netcal.DESCRIPTION}"},
+                   m.warnings, network=True, selfcal=True, netcal=True)
+        return t
+
+    return list(methods) + [twin(m) for m in methods if m.network and not m.selfcal]
+
+
 def with_refine(methods: list[Method]) -> list[Method]:
     """Each method, then each network again with the Lambertian refinement after it (models/refine.py)."""
     from msps_render.models import refine
 
     def twin(m: Method) -> Method:
         def predict(o: RealObject) -> np.ndarray:
-            return refine.refine_normals(m.calibrated(o), o.mask, m.predict(o), o.light_dirs, o.crosstalk)[0]
+            n = m.predict(o)  # first: a netcal method knows its image only after predicting
+            return refine.refine_normals(m.calibrated(o), o.mask, n, o.light_dirs, o.crosstalk)[0]
 
         return Method(m.name + refine.SUFFIX, predict,
                       {**m.info, "kind": f"{m.info.get('kind', m.name)}, {refine.DESCRIPTION}"}, m.warnings,
-                      network=True, selfcal=m.selfcal, segments=m.segments)
+                      network=True, selfcal=m.selfcal, segments=m.segments, netcal=m.netcal, seen=m.seen)
 
     return list(methods) + [twin(m) for m in methods if m.network]
 
@@ -464,7 +493,7 @@ def write_report(bench: RealBench, objects: list[RealObject], out: Path, setting
 def run_bench_real(folders, out: str | Path, checkpoints=(), slant_deg: float = 30.0,
                    tilts_deg=(0.0, 120.0, 240.0), crosstalk: np.ndarray | None = None, skip=(),
                    srgb: bool = False, warn=None, selfcal: bool = False, refine: bool = False,
-                   segments: bool = False) -> RealBench:
+                   segments: bool = False, netcal: bool = False) -> RealBench:
     """Validate OUT and every folder, load every checkpoint, evaluate, then write OUT all-or-nothing."""
     from msps_render.calibration import PAPER_CROSSTALK
     from msps_render.io.staging import check_new_out, staged_dir
@@ -487,12 +516,15 @@ def run_bench_real(folders, out: str | Path, checkpoints=(), slant_deg: float = 
         methods = with_selfcal(methods)
     if segments:
         methods = with_segments(methods)  # twins of the methods without selfcal only
+    if netcal:
+        methods = with_netcal(methods)  # ... of the networks without selfcal only
     if refine:
         methods = with_refine(methods)
     bench = evaluate_real(objects, methods, warn)
     settings = {"slant_deg": float(slant_deg), "tilts_deg": [float(t) for t in tilts_deg],
                 "crosstalk": M.tolist(), "srgb": bool(srgb), "skip": [str(s) for s in skip or ()],
-                "selfcal": bool(selfcal), "segments": bool(segments), "refine": bool(refine)}
+                "selfcal": bool(selfcal), "segments": bool(segments), "netcal": bool(netcal),
+                "refine": bool(refine)}
     with staged_dir(out) as stage:
         write_report(bench, objects, stage, settings)
     bench.summary["settings"] = settings
