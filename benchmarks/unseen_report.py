@@ -26,18 +26,20 @@ import numpy as np
 
 
 def _predictors(models: list[str], selfcal: bool = False, refine: bool = False, mirror: bool = False,
-                segments: bool = False):
+                segments: bool = False, netcal: bool = False):
     """NAME=PATH checkpoints and the baseline, as `msps eval` loads them (msps_render.models.evaluate);
     with `selfcal`, each again after the albedo-colour self-calibration (NAME+selfcal); with `refine`,
     each network again with the Lambertian refinement (NAME+refine, NAME+selfcal+refine); with `segments`,
-    each after the segment-wise self-calibration too (NAME+selfcal+segments)."""
+    each after the segment-wise self-calibration too (NAME+selfcal+segments); with `netcal`, each network
+    after selfcal and the colour read off its own normals (NAME+selfcal+netcal)."""
     from msps_render.models.evaluate import (checkpoint_method, lambertian_method, with_mirror, with_refine,
-                                             with_segments, with_selfcal)
+                                             with_netcal, with_segments, with_selfcal)
 
     methods = [checkpoint_method(path, name) for name, path in (spec.split("=", 1) for spec in models)]
     methods.append(lambertian_method())
     methods = with_selfcal(methods) if selfcal else methods
     methods = with_segments(methods) if segments else methods  # twins of the methods without selfcal only
+    methods = with_netcal(methods) if netcal else methods  # ... of the networks without selfcal only
     methods = with_mirror(methods) if mirror else methods
     return with_refine(methods) if refine else methods
 
@@ -121,11 +123,13 @@ def main() -> None:
                     "after it (msps_render/models/refine.py)")
     ap.add_argument("--segments", action="store_true", help="also every method after the object-level and the "
                     "segment-wise albedo self-calibration (msps_render/models/segments.py)")
+    ap.add_argument("--netcal", action="store_true", help="also every network after the object-level self-"
+                    "calibration and the colour read off its own normals (msps_render/models/netcal.py)")
     ap.add_argument("--mirror", action="store_true", help="also every network averaged with its prediction of "
                     "the mirrored image (msps_render/models/symmetry.py)")
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
-    methods = _predictors(a.model, a.selfcal, a.refine, a.mirror, a.segments)
+    methods = _predictors(a.model, a.selfcal, a.refine, a.mirror, a.segments, a.netcal)
     all_res, md = [], []
     for d in a.data:
         res, shown = report(d, methods)
