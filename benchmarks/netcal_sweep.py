@@ -24,7 +24,8 @@ def main(argv=None) -> None:
     from msps_render.data import iter_frames
     from msps_render.models.checkpoint import load_checkpoint
     from msps_render.models.metrics import angular_error_deg
-    from msps_render.models.netcal import NetcalSettings, chroma_agreement, estimate_colour, pixel_ratios
+    from msps_render.models.netcal import (NetcalSettings, chroma_agreement, divide_out, estimate_colour,
+                                          pixel_ratios)
     from msps_render.models.predict import predict_image
     from msps_render.models.refine import refine_normals
     from msps_render.models.selfcal import self_calibrated
@@ -63,8 +64,7 @@ def main(argv=None) -> None:
                     rho, _px, _ag = estimate_colour(img * scale, m, n, rig, st)
                     if rho is None:
                         break
-                    scale = scale / rho
-                    scale = scale / scale.mean()
+                    scale = divide_out(scale, rho)
                     first = float(np.abs(np.log(scale)).max()) if first is None else first
                     x = (img * scale).astype(np.float32)
                     n = predict(x)

@@ -272,12 +272,37 @@ done
 [ -f "$RUNS/segment-sweep.json" ] || $PY benchmarks/segment_sweep.py --data "$DATA/val-frames-texture" \
   --data "$DATA/val-frames-grey" --data "$DATA/val-frames-colour" --model models/dualcue-cpu-v0.4.pt \
   --out "$RUNS/segment-sweep.json"
-for m in v04=models/dualcue-cpu-v0.4.pt 12a="$RUNS/s12a/last.pt" 6a=models/dualcue-cpu-colour.pt; do
-  n=${m%%=*}
-  [ -f "$RUNS/report-12seg-$n/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --segments --refine \
+# tests_and_diligent TAG NAME=CKPT FLAGS...: the six unseen test sets (runs/report-TAG-NAME) and DiLiGenT
+# (runs/real-TAG-NAME) with the given prediction flags, each skipped when its output exists
+tests_and_diligent() {
+  local tag=$1 m=$2; shift 2
+  local n=${m%%=*}
+  [ -f "$RUNS/report-$tag-$n/report.json" ] || $PY benchmarks/unseen_report.py "$@" \
     --data "$DATA/unseen-test-grey" --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" \
     --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" \
-    --model "$m" --out "$RUNS/report-12seg-$n"
-  [ -f "$RUNS/real-12seg-$n/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG \
-    --out "$RUNS/real-12seg-$n" --selfcal --segments --refine --checkpoint "$m"
+    --model "$m" --out "$RUNS/report-$tag-$n"
+  [ -f "$RUNS/real-$tag-$n/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG \
+    --out "$RUNS/real-$tag-$n" "$@" --checkpoint "$m"
+}
+for m in v04=models/dualcue-cpu-v0.4.pt 12a="$RUNS/s12a/last.pt" 6a=models/dualcue-cpu-colour.pt; do
+  tests_and_diligent 12seg "$m" --selfcal --segments --refine
 done
+
+# ---- stage 13 (docs/reproducing.md "Stage 13") ------------------------------------------------------------
+# the colour read off the network's own normals (--netcal): settings on validation frames only, then the tests
+$MSPS render val-frames --out "$DATA/val-frames" --workers 2 --resume --quiet
+[ -f "$RUNS/netcal-sweep.json" ] || $PY benchmarks/netcal_sweep.py --data "$DATA/val-frames" \
+  --data "$DATA/val-frames-grey" --data "$DATA/val-frames-colour" --data "$DATA/val-frames-texture" \
+  --model models/dualcue-cpu-v0.5.pt --out "$RUNS/netcal-sweep.json"
+for m in v05=models/dualcue-cpu-v0.5.pt v04=models/dualcue-cpu-v0.4.pt; do
+  tests_and_diligent 13 "$m" --selfcal --refine --netcal
+done
+[ -f "$RUNS/eval-13-env-v05/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
+  --netcal --checkpoint v05=models/dualcue-cpu-v0.5.pt --method lambertian --out "$RUNS/eval-13-env-v05"
+# 13a: v0.5 + 5,000 steps with grey objects under environment light in the diet
+$MSPS render train-grey-env --out "$DATA/train-grey-env" --workers 2 --resume --quiet
+$MSPS train cpu --threads 2 --data "$DATA/train-grey-30" --data "$DATA/blobs-48" --data "$DATA/train-grey-env" \
+  --val "$DATA/val" --init models/dualcue-cpu-v0.5.pt --out "$RUNS/s13a" $([ -f "$RUNS/s13a/last.pt" ] && echo --resume) \
+  --set train.freeze_bn=true --set train.shuffle_window=0 --set train.cache=true --set train.albedo_aug=0.10 \
+  --set train.albedo_aug_scope=lambertian --set train.max_minutes=90 --set train.max_steps=5000 --set train.lr=1e-4 \
+  --set train.val_every=500 --set train.val_max_patches=1500

@@ -95,20 +95,25 @@ def estimate_colour(image: np.ndarray, mask: np.ndarray, normals: np.ndarray, ri
     return rho / rho.mean(), len(r), chroma_agreement(r, settings.chroma_tol)
 
 
+def divide_out(scale: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """The image's channel factor after also dividing out `rho`, normalised to mean 1 (exposure kept)."""
+    s = scale / rho
+    return s / s.mean()
+
+
 def calibrate(predict: Callable[[np.ndarray], np.ndarray], image: np.ndarray, mask: np.ndarray,
-              rig: np.ndarray, settings: NetcalSettings = NetcalSettings(),
-              first: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, NetcalFit]:
-    """Run the loop with `predict(image) -> (H, W, 3) normals`; `first`: the prediction on `image`
-    when the caller already has it.  Returns (normals, the image the normals were predicted on, fit)."""
-    normals = predict(image) if first is None else first
+              rig: np.ndarray, settings: NetcalSettings = NetcalSettings()
+              ) -> tuple[np.ndarray, np.ndarray, NetcalFit]:
+    """Run the loop with `predict(image) -> (H, W, 3) normals`.
+    Returns (normals, the image the normals were predicted on, fit)."""
+    normals = predict(image)
     scale = np.ones(3)
     n_px, done, agree = 0, 0, float("nan")
     for r in range(settings.rounds):
         rho, n_px, ag = estimate_colour(image * scale, mask, normals, rig, settings)
         if rho is None:
             break
-        step = scale / rho
-        step = step / step.mean()
+        step = divide_out(scale, rho)
         if r == 0:
             agree = ag
             if np.abs(np.log(step)).max() <= settings.min_colour or ag < settings.min_agree:
