@@ -306,3 +306,8 @@ $MSPS train cpu --threads 2 --data "$DATA/train-grey-30" --data "$DATA/blobs-48"
   --set train.freeze_bn=true --set train.shuffle_window=0 --set train.cache=true --set train.albedo_aug=0.10 \
   --set train.albedo_aug_scope=lambertian --set train.max_minutes=90 --set train.max_steps=5000 --set train.lr=1e-4 \
   --set train.val_every=500 --set train.val_max_patches=1500
+# ... and the rule's measurements (docs/reproducing.md "Stage 13": recorded, not shipped)
+tests_and_diligent 13 13a="$RUNS/s13a/last.pt" --selfcal --refine --netcal
+$PY benchmarks/blob_check.py --model 13a="$RUNS/s13a/last.pt"
+[ -f "$RUNS/eval-13-env-13a/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
+  --netcal --checkpoint 13a="$RUNS/s13a/last.pt" --method lambertian --out "$RUNS/eval-13-env-13a"

@@ -4,8 +4,9 @@ Why: the slow tests re-render the unseen sets from their presets (deterministic,
 `msps render unseen-test[-grey|-colour]`) and check that a model's measured ratio to Lambertian lies
 within claim +- margin.  Before replacing the shipped model, the new claims and their margins (the larger
 side of the 95 % frame-bootstrap interval) are measured here from the stored renders in one pass, in the
-tests' own terms: the network alone on unseen-test and unseen-test-grey, and with --selfcal --refine on
-unseen-test-grey and unseen-test-colour.
+tests' own terms: the network alone on unseen-test and unseen-test-grey, with --selfcal --refine on
+unseen-test-grey and unseen-test-colour, and with --selfcal --netcal --refine on those two and
+unseen-test-texture.
 
     python benchmarks/shipped_claims.py --model NAME=CKPT [--data-root data] [--out claims.json]
 """
@@ -17,16 +18,19 @@ from pathlib import Path
 
 import numpy as np
 
-# (test set, with selfcal+refine?) as the tests measure them
-CLAIMS = [("unseen-test", False), ("unseen-test-grey", False), ("unseen-test-grey", True),
-          ("unseen-test-colour", True)]
+# (test set, pipeline) as the tests measure them
+CLAIMS = [("unseen-test", "net"), ("unseen-test-grey", "net"), ("unseen-test-grey", "selfcal+refine"),
+          ("unseen-test-colour", "selfcal+refine"), ("unseen-test-grey", "selfcal+netcal+refine"),
+          ("unseen-test-colour", "selfcal+netcal+refine"), ("unseen-test-texture", "selfcal+netcal+refine")]
 
 
-def per_frame_errors(data: Path, model, selfcal_refine: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per frame: summed angular error of the model, of calibrated Lambertian PS on the raw image, pixels."""
+def per_frame_errors(data: Path, model, pipeline: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per frame: summed angular error of the model through `pipeline` ("net", "selfcal+refine",
+    "selfcal+netcal+refine"), of calibrated Lambertian PS on the raw image, pixels."""
     from msps_render.data import iter_frames
     from msps_render.models.baseline import lambertian_ps
     from msps_render.models.metrics import angular_error_deg
+    from msps_render.models.netcal import calibrate
     from msps_render.models.predict import predict_image
     from msps_render.models.refine import refine_normals
     from msps_render.models.selfcal import self_calibrated
@@ -34,9 +38,13 @@ def per_frame_errors(data: Path, model, selfcal_refine: bool) -> tuple[np.ndarra
     net, base, count = [], [], []
     for fr in iter_frames(data):
         m = fr.mask.astype(bool)
-        if selfcal_refine:
+        if pipeline != "net":
+            rig = fr.crosstalk @ fr.light_dirs
             img = self_calibrated(fr.image, m, fr.light_dirs, fr.crosstalk)
-            n = predict_image(model, img, m, rig=fr.crosstalk @ fr.light_dirs)
+            if "netcal" in pipeline:
+                n, img, _ = calibrate(lambda x: predict_image(model, x, m, rig=rig), img, m, rig)
+            else:
+                n = predict_image(model, img, m, rig=rig)
             n, _ = refine_normals(img, m, n, fr.light_dirs, fr.crosstalk)
         else:
             n = predict_image(model, fr.image, fr.mask)
@@ -61,13 +69,14 @@ def main(argv=None) -> int:
     rows = []
     for preset, sr in CLAIMS:
         net, base, count = per_frame_errors(a.data_root / preset, model, sr)
+        sr = "" if sr == "net" else sr
         ratio = float(net.sum() / base.sum())
         lo, hi = frame_bootstrap(net, base)
         margin = max(ratio - lo, hi - ratio)
-        rows.append({"set": preset, "selfcal_refine": sr, "mae_deg": float(net.sum() / count.sum()),
+        rows.append({"set": preset, "pipeline": sr or "net", "mae_deg": float(net.sum() / count.sum()),
                      "lambertian_deg": float(base.sum() / count.sum()), "ratio": ratio, "ci95": [lo, hi],
                      "margin": margin, "n_frames": len(net)})
-        print(f"{name} {preset}{' +selfcal+refine' if sr else ''}: {net.sum() / count.sum():.2f} vs "
+        print(f"{name} {preset}{' +' + sr if sr else ''}: {net.sum() / count.sum():.2f} vs "
               f"{base.sum() / count.sum():.2f} deg, ratio {ratio:.4f} [{lo:.4f}, {hi:.4f}], margin {margin:.4f}",
               flush=True)
     if a.out:

@@ -86,16 +86,21 @@ def test_shipped_model_meets_its_claims_on_unseen_objects(preset, claim, margin,
 # (5.61 vs 8.50 deg); colour 0.1753 [0.1311, 0.2341] (6.30 vs 35.92 deg); v0.4: 0.6551 [0.5552, 0.7625],
 # 0.1777 [0.1317, 0.2395]). Issue 20's targets: grey <= 0.75x, colour <= 0.45x.
 REFINE_CLAIMS = [("unseen-test-grey", 0.66, 0.11, 0.75), ("unseen-test-colour", 0.18, 0.06, 0.45)]
+# Stage 13: with --selfcal --netcal --refine (models/netcal.py), the same terms, measured on v0.5 by
+# benchmarks/shipped_claims.py: NETCAL_NOTE.  Targets as above; texture: issue 20's 0.45x is not met.
+NETCAL_CLAIMS = NETCAL_CLAIMS_PLACEHOLDER
 
 
 @pytest.mark.slow  # renders 28 frames of 256² per set (about 15 s each with llvm_ad_rgb, minutes with scalar)
-@pytest.mark.parametrize("preset,claim,margin,target", REFINE_CLAIMS)
-def test_shipped_model_with_selfcal_and_refine_meets_its_claims(preset, claim, margin, target, shared_data,
+@pytest.mark.parametrize("preset,claim,margin,target,netcal",
+                         [(*c, False) for c in REFINE_CLAIMS] + [(*c, True) for c in NETCAL_CLAIMS])
+def test_shipped_model_with_selfcal_and_refine_meets_its_claims(preset, claim, margin, target, netcal, shared_data,
                                                                 rgb_variant, tmp_path, monkeypatch):
     from msps_render.data import iter_frames
     from msps_render.models.baseline import lambertian_ps
     from msps_render.models.checkpoint import load_checkpoint
     from msps_render.models.metrics import angular_error_deg
+    from msps_render.models.netcal import calibrate
     from msps_render.models.predict import default_checkpoint, predict_image
     from msps_render.models.refine import refine_normals
     from msps_render.models.selfcal import self_calibrated
@@ -111,12 +116,17 @@ def test_shipped_model_with_selfcal_and_refine_meets_its_claims(preset, claim, m
         m = fr.mask.astype(bool)
         rig = fr.crosstalk @ fr.light_dirs
         img = self_calibrated(fr.image, m, fr.light_dirs, fr.crosstalk)
-        n, _ = refine_normals(img, m, predict_image(model, img, m, rig=rig), fr.light_dirs, fr.crosstalk)
+        if netcal:
+            n, img, _ = calibrate(lambda x: predict_image(model, x, m, rig=rig), img, m, rig)
+        else:
+            n = predict_image(model, img, m, rig=rig)
+        n, _ = refine_normals(img, m, n, fr.light_dirs, fr.crosstalk)
         net.append(angular_error_deg(n[m], fr.normal[m]).sum())
         base.append(angular_error_deg(lambertian_ps(fr.image, fr.light_dirs, fr.crosstalk, m)[m], fr.normal[m]).sum())
     net, base = np.array(net), np.array(base)
     ratio = net.sum() / base.sum()
     lo, hi = frame_bootstrap(net, base)
-    print(f"{preset} +selfcal+refine: ratio {ratio:.4f}, 95% frame-bootstrap [{lo:.4f}, {hi:.4f}]")
-    assert ratio <= target
+    print(f"{preset} +selfcal{'+netcal' if netcal else ''}+refine: ratio {ratio:.4f}, 95% frame-bootstrap [{lo:.4f}, {hi:.4f}]")
+    if target is not None:  # a claim below an unmet target is still held at its measured value
+        assert ratio <= target
     assert abs(ratio - claim) <= margin, f"{preset}: measured {ratio:.3f}, claimed {claim} +- {margin}"
