@@ -12,6 +12,19 @@ from msps_render.io.png16 import PNG_RULE
 
 PNG_HELP = f"force PNG values to be read as linear radiance / as sRGB-encoded. Default: {PNG_RULE}"
 
+# The extra columns `msps eval` and `msps bench-real` both offer: each flag adds a twin of every method
+# (`msps predict` has its own wording: there the flag changes the one prediction).
+ALSO_SELFCAL = typer.Option(False, "--selfcal", help="also score every method after the object-level albedo-colour "
+                            "self-calibration (a column NAME+selfcal each; models/selfcal.py, docs/appearance.md)")
+ALSO_REFINE = typer.Option(False, "--refine", help="also score every network with the Lambertian refinement after "
+                           "it (a column NAME+refine each; objects of one albedo only; models/refine.py)")
+ALSO_SEGMENTS = typer.Option(False, "--segments", help="also score every method after the object-level and then "
+                             "the segment-wise albedo self-calibration, which divides out each colour region of a "
+                             "textured object (a column NAME+selfcal+segments each; models/segments.py)")
+ALSO_NETCAL = typer.Option(False, "--netcal", help="also score every network after the object-level "
+                           "self-calibration and the albedo colour read off its own normals, predicted again "
+                           "(a column NAME+selfcal+netcal each; needs whole images; models/netcal.py)")
+
 
 @app.command("train")
 @clean_errors
@@ -52,23 +65,13 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
                                               "repeatable: --method lambertian beside --checkpoint compares "
                                               "both (default: net)"),
              max_patches: Optional[int] = typer.Option(None, help="limit per condition"),
-             selfcal: bool = typer.Option(False, "--selfcal", help="also score every method after the object-level "
-                                               "albedo-colour self-calibration (a column NAME+selfcal each; "
-                                               "models/selfcal.py, docs/appearance.md)"),
-             refine: bool = typer.Option(False, "--refine", help="also score every network with the Lambertian "
-                                         "refinement after it (a column NAME+refine each; objects of one "
-                                         "albedo only; models/refine.py)"),
+             selfcal: bool = ALSO_SELFCAL,
+             refine: bool = ALSO_REFINE,
              mirror: bool = typer.Option(False, "--mirror", help="also score every network averaged with its "
                                          "prediction of the mirrored image (NAME+mirror; rigs symmetric about an "
                                          "image axis, as the paper's; models/symmetry.py)"),
-             segments: bool = typer.Option(False, "--segments", help="also score every method after the object-"
-                                           "level and then the segment-wise albedo self-calibration, which "
-                                           "divides out each colour region of a textured object (a column "
-                                           "NAME+selfcal+segments each; models/segments.py)"),
-             netcal: bool = typer.Option(False, "--netcal", help="also score every network after the object-"
-                                         "level self-calibration and the albedo colour read off its own "
-                                         "normals, predicted again (NAME+selfcal+netcal; needs whole frames; "
-                                         "models/netcal.py)")):
+             segments: bool = ALSO_SEGMENTS,
+             netcal: bool = ALSO_NETCAL):
     """Angular-error statistics, SSIM, per-object table (whole frames), robustness, for one method or
     several compared on the same frames: metrics.json, table.md (every method a column, 95 % CIs),
     error_hist.png, per_object.csv/.png (frames stored), robustness.png (sweeps)."""
@@ -158,18 +161,10 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
                    srgb: bool = typer.Option(False, "--srgb", help="PNG photos are sRGB-encoded (default: "
                                              "linear, as raw captures)"),
                    threads: Optional[int] = typer.Option(None, help="torch CPU threads"),
-                   selfcal: bool = typer.Option(False, "--selfcal", help="also score every method after the object-level "
-                                               "albedo-colour self-calibration (a column NAME+selfcal each; "
-                                               "models/selfcal.py, docs/appearance.md)"),
-                   refine: bool = typer.Option(False, "--refine", help="also score every network with the "
-                                               "Lambertian refinement after it (NAME+refine; models/refine.py)"),
-                   segments: bool = typer.Option(False, "--segments", help="also score every method after the "
-                                                 "object-level and the segment-wise albedo self-calibration "
-                                                 "(NAME+selfcal+segments; models/segments.py)"),
-                   netcal: bool = typer.Option(False, "--netcal", help="also score every network after the "
-                                               "object-level self-calibration and the albedo colour read off "
-                                               "its own normals, predicted again (NAME+selfcal+netcal; "
-                                               "models/netcal.py)")):
+                   selfcal: bool = ALSO_SELFCAL,
+                   refine: bool = ALSO_REFINE,
+                   segments: bool = ALSO_SEGMENTS,
+                   netcal: bool = ALSO_NETCAL):
     """Score checkpoints and calibrated Lambertian PS on real captures (validation only: never train on
     real images).  Each folder is composed as `msps compose` does (the three captures nearest the
     layout, divided by light intensity, mixed by the crosstalk); the angular error is taken over the
