@@ -156,3 +156,23 @@ def test_eval_netcal_frames_and_patches(tmp_path):
     # saturated Lambertian objects: selfcal divides the colour out first, so the network sees them grey
     assert nc["frames"]["mae_deg"] < plain["frames"]["mae_deg"] - 3.0, (nc["frames"], plain["frames"])
     assert nc["patches"]["mae_deg"] < plain["patches"]["mae_deg"] - 3.0
+
+
+def test_eval_reuses_the_frame_loop_exactly(tmp_path):
+    """`msps eval` runs each frame's loop once (`frame_fits`) and reuses it for the frame's own row: the
+    reused image and normals are the ones a fresh run of the loop gives (the network is deterministic)."""
+    from msps_render.data import iter_frames
+    from msps_render.models.evaluate import frame_fits, frame_predictions, resolve_methods
+
+    render_tiny(COLOUR_SET, tmp_path)
+    methods = resolve_methods(methods=["net"], netcal=True, refine=True)
+    nets = [m for m in methods if m.netcal]
+    assert [m.name for m in nets] == ["net+selfcal+netcal", "net+selfcal+netcal+refine"]
+    frames = list(iter_frames(tmp_path / "ds"))
+    fits = frame_fits(tmp_path / "ds", None, netcal_methods=nets)  # None: every condition
+    assert len({id(f.netcal[nets[0].netcal_key]) for f in fits.values()}) == len(frames)
+    for fr in frames:
+        fresh = frame_predictions(methods, fr)
+        reused = frame_predictions(methods, fr, fits[(fr.shard, fr.index)])
+        for a, b in zip(fresh, reused):
+            np.testing.assert_allclose(a, b, atol=1e-6)

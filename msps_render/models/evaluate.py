@@ -81,7 +81,7 @@ class Method:
     def object_albedo(self, f: "FrameFit") -> refine.ObjectAlbedo:
         """The refinement's albedo estimate of the frame as this method sees it."""
         if self.netcal:
-            return f.netcal[self.netcal_key][1]
+            return f.netcal[self.netcal_key].albedo
         if self.segments:
             return f.albedo_segments
         return f.albedo_selfcal if self.selfcal else f.albedo
@@ -103,7 +103,7 @@ class Method:
             if self.segments:
                 factor = np.stack([f.segment_map(y, x, P) for f, (y, x) in zip(fits, b["yx"].numpy())])
             elif self.netcal:  # the loop ran on the whole frame (`frame_fits`): its colour, then this network
-                factor = np.stack([f.netcal[self.netcal_key][0] for f in fits])[:, None, None, :]
+                factor = np.stack([f.netcal[self.netcal_key].scale for f in fits])[:, None, None, :]
             else:
                 factor = np.stack([f.scale for f in fits])[:, None, None, :]
             image = image * torch.from_numpy(factor.transpose(0, 3, 1, 2).astype(np.float32))
@@ -149,8 +149,12 @@ class Method:
     def frame(self, fr) -> np.ndarray:
         return self.refined_frame(fr, *self.unrefined_frame(fr))
 
-    def unrefined_frame(self, fr) -> tuple[np.ndarray, np.ndarray]:
-        """(the frame's image as the method sees it, its normals before any refinement)."""
+    def unrefined_frame(self, fr, fit: "FrameFit | None" = None) -> tuple[np.ndarray, np.ndarray]:
+        """(the frame's image as the method sees it, its normals before any refinement); `fit`: the
+        frame's fits, whose network-colour loop (if this method's ran in `frame_fits`) is reused."""
+        if self.netcal and fit is not None and self.netcal_key in fit.netcal:
+            loop = fit.netcal[self.netcal_key]
+            return loop.image, loop.normals
         if self.segments:
             image = segments.calibrated(fr.image, fr.mask, fr.light_dirs, fr.crosstalk)
         elif self.selfcal:
@@ -193,13 +197,14 @@ def patch_predictions(methods: list[Method], b, fits: list["FrameFit"] | None) -
     return out
 
 
-def frame_predictions(methods: list[Method], fr) -> list[np.ndarray]:
-    """Each method's (H, W, 3) normals for one whole frame; the network runs once per `base_key`."""
+def frame_predictions(methods: list[Method], fr, fit: "FrameFit | None" = None) -> list[np.ndarray]:
+    """Each method's (H, W, 3) normals for one whole frame; the network runs once per `base_key`
+    (and not at all for a network-colour loop that `frame_fits` already ran: pass the frame's `fit`)."""
     base: dict[tuple, tuple] = {}
     out = []
     for m in methods:
         if m.base_key not in base:
-            base[m.base_key] = m.unrefined_frame(fr)
+            base[m.base_key] = m.unrefined_frame(fr, fit)
         out.append(m.refined_frame(fr, *base[m.base_key]))
     return out
 
@@ -248,6 +253,16 @@ def with_refine(methods: list[Method]) -> list[Method]:
 
 
 @dataclass(frozen=True)
+class NetcalFrame:
+    """One network's colour loop on a whole frame (models/netcal.py), kept for its patches and its frame."""
+
+    scale: np.ndarray  # (3,) selfcal x loop factor on the image as rendered
+    albedo: refine.ObjectAlbedo  # the refinement's estimate after it
+    image: np.ndarray  # (H, W, 3) the image the normals were predicted on
+    normals: np.ndarray  # (H, W, 3) the loop's normals, before any refinement
+
+
+@dataclass(frozen=True)
 class FrameFit:
     """A frame's whole-object estimates that its patches are scored with."""
 
@@ -256,7 +271,7 @@ class FrameFit:
     albedo_selfcal: refine.ObjectAlbedo  # ... after the colour factor
     segment_scale: np.ndarray | None = None  # (H, W, 3) selfcal then segment-wise factors (models/segments.py)
     albedo_segments: refine.ObjectAlbedo | None = None  # ... the refinement's estimate after them
-    netcal: dict = field(default_factory=dict)  # Method.netcal_key -> ((3,) selfcal x loop factor, ObjectAlbedo)
+    netcal: dict = field(default_factory=dict)  # Method.netcal_key -> NetcalFrame
 
     def segment_map(self, y: int, x: int, size: int) -> np.ndarray:
         """(size, size, 3) factors of the patch at (y, x)."""
@@ -288,9 +303,9 @@ def frame_fits(data: Path, condition: str, why: str = "--selfcal", segment_fits:
         for m in netcal_methods:
             if m.netcal_key not in loops:
                 img = selfcal.apply_colour_fit(fr.image, whole)
-                _, _, fit = netcal.calibrate(m.frame_predictor(fr), img, fr.mask, fr.crosstalk @ fr.light_dirs)
-                loops[m.netcal_key] = (fit.scale * scale, refine.estimate_albedo(
-                    fr.image * (fit.scale * scale), fr.mask, fr.light_dirs, fr.crosstalk))
+                n, seen, fit = netcal.calibrate(m.frame_predictor(fr), img, fr.mask, fr.crosstalk @ fr.light_dirs)
+                loops[m.netcal_key] = NetcalFrame(fit.scale * scale, refine.estimate_albedo(
+                    fr.image * (fit.scale * scale), fr.mask, fr.light_dirs, fr.crosstalk), seen, n)
         fits[(fr.shard, fr.index)] = FrameFit(
             scale, refine.estimate_albedo(fr.image, fr.mask, fr.light_dirs, fr.crosstalk),
             refine.estimate_albedo(fr.image * scale, fr.mask, fr.light_dirs, fr.crosstalk), seg, alb_seg, loops)
@@ -463,7 +478,8 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
             rows = {n: [] for n in names}
             all_err = {n: [] for n in names}
             for fr in frames:
-                for m, n in zip(methods, frame_predictions(methods, fr)):
+                for m, n in zip(methods, frame_predictions(methods, fr, None if fits is None
+                                                           else fits.get((fr.shard, fr.index)))):
                     e = angular_error_deg(n[fr.mask], fr.normal[fr.mask])
                     all_err[m.name].append(e)
                     rows[m.name].append((fr.object, float(e.mean()), int(e.size), float(e.sum())))
