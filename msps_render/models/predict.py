@@ -228,8 +228,8 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
         from msps_render.models.selfcal import apply_colour_fit, fit_albedo_colour
 
         if not calibrated:
-            warn(f"{'--segments' if segments else '--netcal' if netcal else '--selfcal'} without --calibration: fitting the colour under "
-                 "the paper's lights")
+            flag = "--segments" if segments else "--netcal" if netcal else "--selfcal"
+            warn(f"{flag} without --calibration: fitting the colour under the paper's lights")
         fit = fit_albedo_colour(img, mk, L, M)
         img_in = apply_colour_fit(img, fit)
         if segments:  # after the object-level fit: only objects it leaves alone are cut into colour regions

@@ -78,7 +78,7 @@ class Method:
     selfcal: bool = False  # predicts on the self-calibrated image
     segments: bool = False  # ... after the segment-wise self-calibration too (models/segments.py)
     netcal: bool = False  # ... after the colour read off its own normals too (models/netcal.py)
-    seen: dict = field(default_factory=dict)  # netcal: object name -> the image its last normals came from
+    loops: dict = field(default_factory=dict)  # netcal: (object name, id of its image) -> (image seen, normals)
 
     def calibrated(self, o: "RealObject") -> np.ndarray:
         """The object's image as this method sees it (what --refine then refines on; with netcal, after
@@ -86,7 +86,7 @@ class Method:
         from msps_render.models import segments, selfcal
 
         if self.netcal:
-            return self.seen[o.name]
+            return self.loops[(o.name, id(o.image))][0]
         if self.segments:
             return segments.calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)
         if self.selfcal:
@@ -256,11 +256,13 @@ def with_netcal(methods: list[Method]) -> list[Method]:
 
     def twin(m: Method) -> Method:
         def predict(o: RealObject) -> np.ndarray:
-            img = selfcal.self_calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)
-            n, img, _ = netcal.calibrate(lambda x: m.predict(replace(o, image=x)), img, o.mask,
-                                         o.crosstalk @ o.light_dirs)
-            t.seen[o.name] = img
-            return n
+            key = (o.name, id(o.image))  # the refinement twin shares `loops`: the loop runs once per object
+            if key not in t.loops:
+                img = selfcal.self_calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)
+                n, img, _ = netcal.calibrate(lambda x: m.predict(replace(o, image=x)), img, o.mask,
+                                             o.crosstalk @ o.light_dirs)
+                t.loops[key] = (img, n)
+            return t.loops[key][1]
 
         t = Method(m.name + selfcal.SUFFIX + netcal.SUFFIX, predict,
                    {**m.info, "kind": f"{m.info.get('kind', m.name)}, {selfcal.DESCRIPTION}, {netcal.DESCRIPTION}"},
@@ -281,7 +283,7 @@ def with_refine(methods: list[Method]) -> list[Method]:
 
         return Method(m.name + refine.SUFFIX, predict,
                       {**m.info, "kind": f"{m.info.get('kind', m.name)}, {refine.DESCRIPTION}"}, m.warnings,
-                      network=True, selfcal=m.selfcal, segments=m.segments, netcal=m.netcal, seen=m.seen)
+                      network=True, selfcal=m.selfcal, segments=m.segments, netcal=m.netcal, loops=m.loops)
 
     return list(methods) + [twin(m) for m in methods if m.network]
 
