@@ -280,7 +280,7 @@ class FrameFit:
         return self.segment_scale[y:y + size, x:x + size]
 
 
-def frame_fits(data: Path, condition: str, why: str = "--selfcal", segment_fits: bool = False,
+def frame_fits(data: Path, condition: str | None, why: str = "--selfcal", segment_fits: bool = False,
                netcal_methods: list[Method] = ()) -> dict[tuple[str, int], FrameFit]:
     """(shard file name, frame index) -> the frame's fits, for scoring patches as whole frames are.
     `netcal_methods`: each runs its network-colour loop on the whole frame (a network pass or two)."""
