@@ -37,7 +37,7 @@ def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAM
               init: Optional[Path] = typer.Option(None, help="warm start: weights of this checkpoint "
                                                   "(same network), fresh optimizer and schedule"),
               set_: List[str] = typer.Option([], "--set", help="override, e.g. train.max_minutes=10"),
-              device: str = typer.Option("cpu", help="cpu or cuda"),
+              device: str = typer.Option("auto", help="auto (CUDA when usable, else CPU), cpu or cuda"),
               threads: Optional[int] = typer.Option(None, help="torch CPU threads")):
     """Train the dual-cue network (or an ablation: --set net.mode=scn|pcn)."""
     import torch

@@ -43,6 +43,11 @@ class TrainSection(StrictModel):
                                                   "after max_minutes/20 without one)")
     val_max_patches: int = Field(2000, ge=1, description="validation patches per check")
     seed: int = Field(0, description="seed of initialisation and data order")
+    precision: Literal["auto", "fp32", "bf16"] = Field(
+        "auto", description="arithmetic of the forward pass: auto = bf16 autocast on a CUDA device, float32 on "
+                            "the CPU (bf16 needs no loss scaler; docs/scaling.md \"Running on a GPU\")")
+    channels_last: bool | Literal["auto"] = Field("auto", description="NHWC memory format for the convolutions "
+                                                                      "(auto: on a CUDA device)")
     num_workers: int = Field(0, ge=0, description="DataLoader worker processes")
     cache: bool | Literal["auto"] = Field("auto", description="keep the decoded training corpus in memory "
                                                               "(auto: when it takes <= 40 % of available memory)")
