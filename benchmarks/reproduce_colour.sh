@@ -261,7 +261,7 @@ for m in 12a="$RUNS/s12a/last.pt" 12b="$RUNS/s12b/last.pt"; do
 done
 # 12a ships as v0.5 (the rule in docs/reproducing.md "Stage 12"): its claims, then the export
 [ -f "$RUNS/claims-12a.json" ] || $PY benchmarks/shipped_claims.py --model 12a="$RUNS/s12a/last.pt" --out "$RUNS/claims-12a.json"
-[ -f models/dualcue-cpu-v0.5.pt ] || $PY benchmarks/ship_model.py "$RUNS/s12a/last.pt" models/dualcue-cpu-v0.5.pt \
+[ -f "$RUNS/dualcue-cpu-v0.5.pt" ] || $PY benchmarks/ship_model.py "$RUNS/s12a/last.pt" "$RUNS/dualcue-cpu-v0.5.pt" \
   --init models/dualcue-cpu-v0.4.pt
 # the segment-wise self-calibration: its bound with the TRUE regions (test ground truth; chooses nothing),
 # thresholds on validation frames only, then the test sets
@@ -293,16 +293,16 @@ done
 $MSPS render val-frames --out "$DATA/val-frames" --workers 2 --resume --quiet
 [ -f "$RUNS/netcal-sweep.json" ] || $PY benchmarks/netcal_sweep.py --data "$DATA/val-frames" \
   --data "$DATA/val-frames-grey" --data "$DATA/val-frames-colour" --data "$DATA/val-frames-texture" \
-  --model models/dualcue-cpu-v0.5.pt --out "$RUNS/netcal-sweep.json"
-for m in v05=models/dualcue-cpu-v0.5.pt v04=models/dualcue-cpu-v0.4.pt; do
+  --model models/dualcue-cpu.pt --out "$RUNS/netcal-sweep.json"
+for m in v05=models/dualcue-cpu.pt v04=models/dualcue-cpu-v0.4.pt; do
   tests_and_diligent 13 "$m" --selfcal --refine --netcal
 done
 [ -f "$RUNS/eval-13-env-v05/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
-  --netcal --checkpoint v05=models/dualcue-cpu-v0.5.pt --method lambertian --out "$RUNS/eval-13-env-v05"
+  --netcal --checkpoint v05=models/dualcue-cpu.pt --method lambertian --out "$RUNS/eval-13-env-v05"
 # 13a: v0.5 + 5,000 steps with grey objects under environment light in the diet
 $MSPS render train-grey-env --out "$DATA/train-grey-env" --workers 2 --resume --quiet
 $MSPS train cpu --threads 2 --data "$DATA/train-grey-30" --data "$DATA/blobs-48" --data "$DATA/train-grey-env" \
-  --val "$DATA/val" --init models/dualcue-cpu-v0.5.pt --out "$RUNS/s13a" $([ -f "$RUNS/s13a/last.pt" ] && echo --resume) \
+  --val "$DATA/val" --init models/dualcue-cpu.pt --out "$RUNS/s13a" $([ -f "$RUNS/s13a/last.pt" ] && echo --resume) \
   --set train.freeze_bn=true --set train.shuffle_window=0 --set train.cache=true --set train.albedo_aug=0.10 \
   --set train.albedo_aug_scope=lambertian --set train.max_minutes=90 --set train.max_steps=5000 --set train.lr=1e-4 \
   --set train.val_every=500 --set train.val_max_patches=1500
