@@ -91,4 +91,4 @@ def load_model_config(path_or_name: str | Path, overrides: list[str] = ()) -> Mo
         raise InputError(Path(path_or_name), f"model config not found{closest(str(path_or_name), known)} "
                                              f"(presets: {', '.join(known)})")
     check_override_keys(overrides, ModelConfig)  # a typo in --set is blamed on --set, not the preset file
-    return validate(ModelConfig, apply_overrides(read_toml(p, "model config"), overrides), p)
+    return validate(ModelConfig, apply_overrides(read_toml(p, "model config"), overrides), p, overrides)
