@@ -6,6 +6,7 @@
 # beside the checkout (test meshes, DiLiGenT captures).
 # Usage: bash benchmarks/reproduce_colour.sh [DATA_DIR] [RUN_DIR] [MINUTES]
 set -euo pipefail
+export MSPS_TEST_DATA=${MSPS_TEST_DATA:-../shared/data}  # the unseen-* presets read meshes/ and envmaps/ from it
 DATA=${1:-data}
 RUNS=${2:-runs}
 MINUTES=${3:-65}

@@ -5,6 +5,7 @@
 # Run from the repository root with ../shared/data beside the checkout (test meshes, HDR map).
 # Usage: bash benchmarks/reproduce_unseen.sh [DATA_DIR] [RUN_DIR] [STEPS] [LONG_MINUTES]
 set -euo pipefail
+export MSPS_TEST_DATA=${MSPS_TEST_DATA:-../shared/data}  # the unseen-* presets read meshes/ and envmaps/ from it
 DATA=${1:-data}
 RUNS=${2:-runs}
 STEPS=${3:-5000}          # stage 1: equal-steps comparison of dual / SCN / PCN / dual-robust

@@ -67,7 +67,7 @@ def test_shipped_model_meets_its_claims_on_unseen_objects(preset, claim, margin,
     from msps_render.pipeline.run import render_dataset
     from msps_render.testing import frame_bootstrap
 
-    monkeypatch.chdir(ROOT)  # the presets name the meshes as ../shared/data/meshes/..., from the checkout
+    monkeypatch.setenv("MSPS_TEST_DATA", str(shared_data))  # where the unseen-* presets read their meshes
     cfg = load_config(preset)
     render_dataset(cfg, tmp_path / preset, progress=False, variant=rgb_variant)
     net, base, count = _per_frame_errors(tmp_path / preset, load_checkpoint(default_checkpoint())[0])
@@ -111,7 +111,7 @@ def test_shipped_model_with_selfcal_and_refine_meets_its_claims(preset, claim, m
     from msps_render.pipeline.run import render_dataset
     from msps_render.testing import frame_bootstrap
 
-    monkeypatch.chdir(ROOT)
+    monkeypatch.setenv("MSPS_TEST_DATA", str(shared_data))
     render_dataset(load_config(preset), tmp_path / preset, progress=False, variant=rgb_variant)
     model = load_checkpoint(default_checkpoint())[0]
     net, base = [], []
