@@ -1,4 +1,4 @@
-"""Probe, not built: the network-colour loop per colour region instead of per object (docs/reproducing.md
+"""Probe, not built: the network-colour loop per colour region instead of per object (docs/history.md
 "Stage 13").  Validation frames only.
 
     python benchmarks/netcal_regions_probe.py --data data/val-frames --data data/val-frames-texture \

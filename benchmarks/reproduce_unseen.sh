@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Train on corpora that teach real objects and test on objects training never saw
-# (docs/reproducing.md, "Unseen objects"). Resumable: rerun the same command after an
+# (docs/history.md, "Unseen objects"). Resumable: rerun the same command after an
 # interruption and every finished render, training step and evaluation is kept.
 # Run from the repository root with ../shared/data beside the checkout (test meshes, HDR map).
 # Usage: bash benchmarks/reproduce_unseen.sh [DATA_DIR] [RUN_DIR] [STEPS] [LONG_MINUTES]
