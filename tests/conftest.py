@@ -93,3 +93,5 @@ def shared_data() -> Path:
 
 def pytest_configure(config):
     os.environ.setdefault("MSPS_THREADS", "2")
+    if SHARED.is_dir():  # the unseen-* presets read their meshes and map from $MSPS_TEST_DATA
+        os.environ.setdefault("MSPS_TEST_DATA", str(SHARED))

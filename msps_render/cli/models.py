@@ -158,8 +158,7 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
                    skip: List[str] = typer.Option([], help="leave out a capture before the nearest three are "
                                                   "chosen: FILE (e.g. 001.png, in every folder) or "
                                                   "OBJECT/FILE (one folder); repeatable"),
-                   srgb: bool = typer.Option(False, "--srgb", help="PNG photos are sRGB-encoded (default: "
-                                             "linear, as raw captures)"),
+                   srgb: bool = typer.Option(False, "--srgb", help=f"PNG photos are sRGB-encoded. Default: {PNG_RULE}"),
                    threads: Optional[int] = typer.Option(None, help="torch CPU threads"),
                    selfcal: bool = ALSO_SELFCAL,
                    refine: bool = ALSO_REFINE,
