@@ -94,13 +94,22 @@ def _record_line(name: str, data: bytes) -> str:
     return f"{name},sha256={digest},{len(data)}"
 
 
+_VARIANT_MOD = re.compile(r"^mitsuba/((?:scalar|llvm_ad|cuda_ad)_\w+)\.cpython-[^/]+\.so$")
+_PLUGIN_SO = re.compile(r"^mitsuba/plugins/(\w+)\.so$")
+
+
+def keeps(name: str, variants=VARIANTS, plugins=PLUGINS) -> bool:
+    """Does the slim Mitsuba keep file `name` (a path inside the wheel, 'mitsuba/...')?"""
+    m, p = _VARIANT_MOD.match(name), _PLUGIN_SO.match(name)
+    return not ((m and m.group(1) not in variants) or (p and p.group(1) not in plugins)
+                or name.startswith(DROP_DIRS) or name.endswith(".pyi")
+                or (name == "mitsuba/data/srgb.coeff" and not any("spectral" in v for v in variants)))
+
+
 def slim_mitsuba(src: Path, dst: Path, variants=VARIANTS, plugins=PLUGINS) -> tuple[int, int]:
     """Rewrite the Mitsuba wheel keeping `variants` and `plugins` (each plugin .so holds every variant,
     so plugins are kept or dropped whole); its config lists only the kept variants, so `mi.variants()`
     tells the truth. srgb.coeff (8.9 MB) stays only when a spectral variant does. Returns (bytes in, out)."""
-    variant_mod = re.compile(r"^mitsuba/((?:scalar|llvm_ad|cuda_ad)_\w+)\.cpython-[^/]+\.so$")
-    plugin_so = re.compile(r"^mitsuba/plugins/(\w+)\.so$")
-    spectral = any("spectral" in v for v in variants)
     record_name = None
     lines = []
     with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as zout:
@@ -109,10 +118,7 @@ def slim_mitsuba(src: Path, dst: Path, variants=VARIANTS, plugins=PLUGINS) -> tu
             if n.endswith(".dist-info/RECORD"):
                 record_name = n
                 continue
-            m, p = variant_mod.match(n), plugin_so.match(n)
-            if (m and m.group(1) not in variants) or (p and p.group(1) not in plugins) \
-                    or n.startswith(DROP_DIRS) or n.endswith(".pyi") \
-                    or (n == "mitsuba/data/srgb.coeff" and not spectral):
+            if not keeps(n, variants, plugins):
                 continue
             data = zin.read(n)
             if n == "mitsuba/config.py":
