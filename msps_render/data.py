@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Iterator, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -32,9 +32,17 @@ from msps_render.errors import InputError
 _ALIGN = 64  # byte alignment of the arrays inside a slot
 
 
-def _shard_list(root: Path, condition: str | None) -> list[tuple[Path, int, str]]:
+class ShardRef(NamedTuple):
+    """One shard of a dataset as the loader sees it (a tuple, so `for path, n, _ in ds.shards` reads)."""
+
+    path: Path
+    n_patches: int
+    condition: str
+
+
+def _shard_list(root: Path, condition: str | None) -> list[ShardRef]:
     m = load_manifest(root)
-    return [(m.shard_path(e.name), e.n_patches, e.condition) for e in m.shards_of(condition)]
+    return [ShardRef(m.shard_path(e.name), e.n_patches, e.condition) for e in m.shards_of(condition)]
 
 
 Layout = dict[str, tuple[tuple[int, ...], np.dtype]]  # {array: (stored shape, dtype)} of a shard
@@ -99,7 +107,7 @@ class PatchDataset(Dataset):
         if not roots:
             raise ValueError("PatchDataset needs at least one dataset directory")
         self.roots, self.root = roots, roots[0]
-        self.shards = []
+        self.shards: list[ShardRef] = []
         for r in roots:
             if verify:
                 bad = verify_dataset(r)
@@ -113,7 +121,8 @@ class PatchDataset(Dataset):
         self._decoded: dict[int, dict] = {}
         self._scratch: dict[str, np.ndarray] = {}
         self._pid = None
-        self._meta = [self._read_meta(p) for p, _, _ in self.shards]
+        # per shard: its frames' light_dirs, crosstalk, lambertian, and per patch frame_index, yx; its layout
+        self.meta = [self._read_meta(p) for p, _, _ in self.shards]
         self._cache = None
         if cache:
             self.keep_decoded()
@@ -137,7 +146,7 @@ class PatchDataset(Dataset):
     def decoded_bytes(self) -> int:
         """Bytes the decoded patches take in memory (what `cache=True` holds), from the layouts alone."""
         return int(sum(int(np.prod(shape)) * np.dtype(dtype).itemsize
-                       for m in self._meta for shape, dtype in m["layout"].values()))
+                       for m in self.meta for shape, dtype in m["layout"].values()))
 
     # -------------------------------------------------------------- internals
     @staticmethod
@@ -154,7 +163,7 @@ class PatchDataset(Dataset):
         if self._pid != os.getpid():  # new process (DataLoader worker): reopen everything
             self._handles, self._decoded, self._scratch, self._pid = {}, {}, {}, os.getpid()
         if s not in self._handles:
-            self._handles[s] = open_shard(self.shards[s][0], chunk_cache=False)  # whole-array reads only
+            self._handles[s] = open_shard(self.shards[s].path, chunk_cache=False)  # whole-array reads only
         return self._handles[s]
 
     def locate(self, idx: int) -> tuple[int, int]:
@@ -174,7 +183,7 @@ class PatchDataset(Dataset):
             # Decode the whole shard once: h5py fancy indexing costs ~0.3 ms per index and
             # re-reading spans re-decompresses them; a small LRU of decoded shards serves the
             # per-item / get_batch paths and repeated validation passes over the same shards.
-            with shard_errors(self.shards[s][0]):
+            with shard_errors(self.shards[s].path):
                 c = read_patches(self._h(s))
             self._decoded[s] = c
             while len(self._decoded) > self.decoded_shards:
@@ -183,30 +192,17 @@ class PatchDataset(Dataset):
             self._decoded[s] = self._decoded.pop(s)  # most recently used
         return c
 
-    def _arrays(self, s: int, local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        c = self._shard_arrays(s)
-        return c["image"][local], c["normal"][local], c["mask"][local]
-
     def _pack(self, s: int, local: np.ndarray) -> dict:
-        img, nrm, msk = self._arrays(s, local)
-        meta = self._meta[s]
-        f = meta["frame_index"][local]
-        return {
-            "image": torch.from_numpy(np.ascontiguousarray(img.transpose(0, 3, 1, 2), dtype=np.float32)),
-            "normal": torch.from_numpy(np.ascontiguousarray(nrm.transpose(0, 3, 1, 2), dtype=np.float32)),
-            "mask": torch.from_numpy(msk[:, None].astype(np.float32)),
-            "light_dirs": torch.from_numpy(meta["light_dirs"][f].astype(np.float32)),
-            "crosstalk": torch.from_numpy(meta["crosstalk"][f].astype(np.float32)),
-            "lambertian": torch.from_numpy(meta["lambertian"][f]),
-            "shard": torch.full((len(local),), s, dtype=torch.int64),
-            "frame": torch.from_numpy(f.astype(np.int64)),
-            "yx": torch.from_numpy(meta["yx"][local]),
-            "index": torch.from_numpy(local.astype(np.int64) + self.offsets[s]),
-        }
+        """The batch dict of rows `local` of shard `s` (the one batch builder, `_assemble`)."""
+        c = self._shard_arrays(s)
+        views = {"image": c["image"].transpose(0, 3, 1, 2), "normal": c["normal"].transpose(0, 3, 1, 2),
+                 "mask": c["mask"][:, None]}
+        idx = np.asarray(local, dtype=np.int64) + self.offsets[s]
+        return _assemble(idx, [(s, 0, len(idx))], {s: views}, self.meta, self.offsets)
 
     def shard_bytes(self, s: int) -> int:
         """Bytes of shard `s` decoded (what `read_shard_into` needs)."""
-        return _slot_bytes(self._meta[s]["layout"])
+        return _slot_bytes(self.meta[s]["layout"])
 
     def read_shard_into(self, s: int, buf: np.ndarray) -> dict[str, np.ndarray]:
         """Decode every patch of shard `s` into the uint8 buffer `buf`; returns typed views of it:
@@ -216,12 +212,12 @@ class PatchDataset(Dataset):
         buffers that are reused (fresh ones cost a page fault per 4 KiB), and the transpose to
         channels-first is the one copy into `buf`.
         """
-        layout = self._meta[s]["layout"]
+        layout = self.meta[s]["layout"]
         views = _slot_views(buf, layout)
         if self._cache is not None:
             src = self._cache[s]
         else:
-            with shard_errors(self.shards[s][0]):
+            with shard_errors(self.shards[s].path):
                 h = self._h(s)  # first: a new process starts with fresh handles and scratch
                 for name, (shape, dtype) in layout.items():
                     have = self._scratch.get(name)
@@ -437,7 +433,7 @@ class ShardLoader:
             for b, idx in enumerate(batches):
                 if run != self._run:
                     raise RuntimeError("this ShardLoader iteration was superseded by a newer one")
-                yield _assemble(idx, runs[b], {s: ds.cached_views(s) for s, _, _ in runs[b]}, ds._meta, offsets)
+                yield _assemble(idx, runs[b], {s: ds.cached_views(s) for s, _, _ in runs[b]}, ds.meta, offsets)
             return
         stream = self._decoded(order)
         live: dict[int, dict[str, np.ndarray]] = {}
@@ -448,9 +444,9 @@ class ShardLoader:
             for s, _, _ in runs[b]:
                 while s not in live:
                     got, k = next(stream)
-                    live[got] = _slot_views(self._slots.bufs[k].numpy(), ds._meta[got]["layout"])
+                    live[got] = _slot_views(self._slots.bufs[k].numpy(), ds.meta[got]["layout"])
                     slot_of[got] = k
-            yield _assemble(idx, runs[b], live, ds._meta, offsets)
+            yield _assemble(idx, runs[b], live, ds.meta, offsets)
             for s, _, _ in runs[b]:
                 if last_use[s] == b and s in live:
                     del live[s]

@@ -123,11 +123,11 @@ def test_training_with_an_augmentation_is_deterministic(key):
     def weights(share: float) -> torch.Tensor:
         cfg = load_model_config("cpu", small + [f"train.{key}={share}"])
         torch.manual_seed(0)
-        model, opt = build_model(cfg, "cpu")
+        model, opt = build_model(cfg)
         run = Run(cfg, Path("."), model, opt, "")
         for step in range(3):
             run.state["step"] = step
-            train_step(run, batch, "cpu")
+            train_step(run, batch)
         return torch.cat([p.detach().flatten() for p in model.parameters()])
 
     a = weights(0.5)
