@@ -33,7 +33,7 @@ import tempfile
 import time
 from pathlib import Path
 
-STAGES = ("sample", "mesh", "materials", "scene dict", "scene load", "kernel compile", "ground truth", "render",
+STAGES = ("sample", "mesh", "materials", "scene dict", "scene load", "scene update", "kernel compile", "ground truth", "render",
           "sensor", "patchify", "release memory", "frame record", "write")
 
 
@@ -60,6 +60,7 @@ def main() -> None:
     from msps_render.pipeline.execute import WorkerSettings, render_shard
     from msps_render.pipeline.plan import plan
     from msps_render.render.kernels import COMPILE_STAGE, KernelLog
+    from msps_render.render.pool import ScenePool
     from msps_render.render.variant import activate, resolve_variant
     from msps_render.timing import StageTimer
 
@@ -80,8 +81,9 @@ def main() -> None:
         (Path(out) / "shards").mkdir()
         ws = WorkerSettings(out_dir=out, variant=variant, threads=a.threads)
         t_all, c_all = time.perf_counter(), time.process_time()
+        scenes = ScenePool()  # one worker: its loaded scenes are kept across its shards
         for task in plan(cfg):
-            info = render_shard(task, ws, timer=timer)
+            info = render_shard(task, ws, timer=timer, scenes=scenes)
             walls.append(info["wall_seconds"])
         t_all, c_all = time.perf_counter() - t_all, time.process_time() - c_all
     log.close()

@@ -17,7 +17,9 @@ import numpy as np
 
 from msps_render.frame import Frame
 from msps_render.render.emitters import render_emitters_one_pass, render_emitters_separately
-from msps_render.render.ground_truth import frame_truth
+from msps_render.render.ground_truth import frame_truth, pooled_truth
+from msps_render.render.multilight import PART_ATTRIBUTE
+from msps_render.render.pool import ScenePool, poolable
 from msps_render.render.scene_dict import build_scene_dict, emitter_ids, one_pass
 from msps_render.render.spectral import render_spectral_frame
 from msps_render.render.variant import activate, resolve_variant
@@ -26,25 +28,36 @@ from msps_render.timing import StageTimer, stage
 
 
 def render_frame(spec: SceneSpec, variant: str | None = None, threads: int | None = None,
-                 per_light: bool = False, timer: StageTimer | None = None) -> Frame:
+                 per_light: bool = False, timer: StageTimer | None = None, scenes: ScenePool | None = None) -> Frame:
     """Render one scene. `variant=None` resolves the best working variant for `spec.mode`.
-    `timer` (optional) times the steps (benchmarks/bench_breakdown.py)."""
+    `timer` (optional) times the steps (benchmarks/bench_breakdown.py).  `scenes` (optional, one
+    per worker): frames it accepts (`pool.poolable`) are rendered from a scene kept alive across
+    frames and updated in place; the others, and every frame without it, from a fresh scene."""
     variant = variant or resolve_variant(spec.mode)
     mi = activate(variant, threads)
     if spec.mode == "spectral":  # not split into steps: all of it is timed as "render"
         with stage(timer, "render"):
             return render_spectral_frame(spec, mi, variant, per_light=per_light)
-    d = build_scene_dict(spec, mi, timer)
-    with stage(timer, "scene load"):
-        scene = mi.load_dict(d)
-    with stage(timer, "ground truth"):
-        normal, mask, depth, part, albedo, blend = frame_truth(mi, scene, spec)
-    with stage(timer, "render"):
-        if one_pass(spec, mi):
-            images = render_emitters_one_pass(mi, scene, emitter_ids(spec), spec.integrator.spp,
-                                              spec.integrator.seed)
-        else:
-            images = render_emitters_separately(mi, scene, spec)
+    if scenes is not None and poolable(spec, mi):
+        with scenes.frame(spec, mi, timer) as pooled:
+            with stage(timer, "ground truth"):
+                truth = pooled_truth(mi, pooled.scene, pooled.sensor, spec, PART_ATTRIBUTE)
+            with stage(timer, "render"):
+                images = render_emitters_one_pass(mi, pooled.scene, emitter_ids(spec), spec.integrator.spp,
+                                                  spec.integrator.seed, pooled.sensor)
+    else:
+        d = build_scene_dict(spec, mi, timer)
+        with stage(timer, "scene load"):
+            scene = mi.load_dict(d)
+        with stage(timer, "ground truth"):
+            truth = frame_truth(mi, scene, spec)
+        with stage(timer, "render"):
+            if one_pass(spec, mi):
+                images = render_emitters_one_pass(mi, scene, emitter_ids(spec), spec.integrator.spp,
+                                                  spec.integrator.seed)
+            else:
+                images = render_emitters_separately(mi, scene, spec)
+    normal, mask, depth, part, albedo, blend = truth
     env_img = images.pop() if spec.environment is not None else None
     per = np.stack(images) if images else np.zeros((0,) + normal.shape, np.float32)
     image = per.sum(axis=0) + (env_img if env_img is not None else 0.0)
