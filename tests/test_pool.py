@@ -1,13 +1,14 @@
 """Scenes kept alive across frames (render/pool.py): a frame rendered from a pooled scene does not
 depend on the frames rendered before it, never comes from a stale scene when the topology or the
-structure changes, equals the fresh build up to float rounding, and has the fresh build's
-Monte-Carlo error against a high-spp reference."""
+structure changes, equals the fresh build (`render_fresh`, the code path of before) up to float
+rounding, and has the fresh build's Monte-Carlo error against a high-spp reference."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from msps_render.render import render_frame
+from msps_render.render.render import render_fresh
 from msps_render.render.pool import ScenePool, pool_key
 from msps_render.scene.spec import SceneSpec
 
@@ -72,7 +73,7 @@ def test_pooled_frames_equal_fresh_builds(rgb_variant, paper_specs):
     pool = ScenePool()
     for k, spec in enumerate(_sequence(paper_specs)):
         f = render_frame(spec, rgb_variant, threads=1, scenes=pool)
-        g = render_frame(spec, rgb_variant, threads=1)
+        g = render_fresh(spec, rgb_variant, threads=1)
         assert np.array_equal(f.mask, g.mask) and np.array_equal(f.part, g.part), k
         assert f.mask.mean() > 0.15, k  # the object fills the frame: the comparison means something
         assert np.abs(f.normal - g.normal).max() < 1e-3, k  # unit vectors; observed <= 2.5e-4
@@ -90,11 +91,12 @@ def test_pooled_error_against_reference_is_the_fresh_error(rgb_variant, paper_sp
     pool = ScenePool()
     for spec in paper_specs[:3]:
         hi = spec.model_copy(update={"integrator": spec.integrator.model_copy(update={"spp": 512, "seed": 99})})
-        ref = render_frame(hi, rgb_variant, threads=1)
+        ref = render_fresh(hi, rgb_variant, threads=1)
         m = ref.mask
         err = {}
-        for name, scenes in (("pooled", pool), ("fresh", None)):
-            f = render_frame(spec, rgb_variant, threads=1, scenes=scenes)
+        for name, render in (("pooled", lambda s: render_frame(s, rgb_variant, threads=1, scenes=pool)),
+                             ("fresh", lambda s: render_fresh(s, rgb_variant, threads=1))):
+            f = render(spec)
             err[name] = float(np.sqrt(((f.image - ref.image)[m] ** 2).mean()) / ref.image[m].mean())
         # 8 spp is noisy (measured materials: fireflies, relative RMS 0.05-0.5): errors are far from 0
         assert 0.005 < err["fresh"] < 1.5, err
