@@ -7,8 +7,8 @@ Usage:
 Issue 37: per preset it also times, on frames after the warm-up, Mitsuba's own costs of the same
 frames built as fresh scenes -- the bare render kernel (`mi.render` of an already-built scene,
 second call) and the bare scene build (`mi.load_dict`, plugins + Embree BVH) -- and prints the
-pipeline's median seconds per frame (after warm-up, kernel compiles included) over the bare
-kernel's, all presets in one run and one process.
+pipeline's median seconds per frame over the bare kernel's on the same frames (kernel compiles
+included), all presets in one run and one process.
 
 Renders the first ceil(frames / frames_per_shard) shards of the preset in THIS
 process through the pipeline's own `render_shard` (one worker, the variant
@@ -52,8 +52,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--warmup", type=int, default=8, help="frames excluded from the 'after warm-up' counts "
                                                           "and from the pipeline / kernel ratio")
-    ap.add_argument("--bare-frames", type=int, default=12,
-                    help="frames after warm-up whose bare kernel and scene build are timed (0: skip)")
+    ap.add_argument("--bare-frames", type=int, default=10 ** 6,
+                    help="at most this many frames after warm-up are timed again bare, kernel and scene "
+                         "build, and the ratio is taken on them (default: all; 0: skip)")
     ap.add_argument("--fresh-disk-cache", action="store_true")
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
                     help="stage times in wall seconds or this process's CPU seconds (robust under load)")
@@ -69,8 +70,8 @@ def main() -> None:
     summary = [run_preset(p.strip(), a) for p in a.preset.split(",") if p.strip()]
     if a.bare_frames > 0:
         print()
-        print(f"## Pipeline per frame against the bare kernel (one run, medians over frames {a.warmup + 1}.. of "
-              f"each preset; bare timings on {a.bare_frames} of those frames)")
+        print(f"## Pipeline per frame against the bare kernel (one run, {a.clock} clock; medians over the "
+              f"same frames after {a.warmup} warm-up frames of each preset)")
         print()
         print("| preset | frames | pipeline s/frame | bare kernel s | bare scene build s | pipeline / kernel | "
               "build / kernel | pooled frames |")
@@ -80,9 +81,10 @@ def main() -> None:
                   f"**{r['pipeline'] / r['kernel']:.2f}x** | {r['build'] / r['kernel']:.2f}x | {r['pooled']} |")
 
 
-def bare_costs(specs, variant: str, threads: int) -> tuple[list[float], list[float]]:
+def bare_costs(specs, variant: str, threads: int, clock=time.perf_counter) -> tuple[list[float], list[float]]:
     """Per spec: the bare render kernel (`mi.render` of an already-built fresh scene, 2nd call, synced)
-    and the bare scene build (`mi.load_dict` of its description: plugins + Embree BVH)."""
+    and the bare scene build (`mi.load_dict` of its description: plugins + Embree BVH), in `clock`
+    seconds (the stage timer's: wall, or this process's CPU over all its threads)."""
     import gc
 
     import drjit as dr
@@ -95,16 +97,16 @@ def bare_costs(specs, variant: str, threads: int) -> tuple[list[float], list[flo
     for spec in specs:
         d = build_scene_dict(spec, mi)
         dr.sync_thread()
-        t = time.perf_counter()
+        t = clock()
         scene = mi.load_dict(d)
         dr.sync_thread()
-        build.append(time.perf_counter() - t)
+        build.append(clock() - t)
         dr.eval(mi.render(scene, spp=spec.integrator.spp, seed=spec.integrator.seed))  # compiles if new
         dr.sync_thread()
-        t = time.perf_counter()
+        t = clock()
         dr.eval(mi.render(scene, spp=spec.integrator.spp, seed=spec.integrator.seed))
         dr.sync_thread()
-        kernel.append(time.perf_counter() - t)
+        kernel.append(clock() - t)
         del scene, d
         gc.collect()
     return kernel, build
@@ -191,16 +193,17 @@ def run_preset(preset: str, a) -> dict:
     print("per frame (compiled / disk / new hashes / launches):",
           " ".join(f"{int(c['compiled'])}/{int(c['disk_loads'])}/{int(c['new_hashes'])}/{int(c['launches'])}"
                    for c in timer.counts))
-    result = {"preset": preset, "n": n - w, "pipeline": statistics.median(frame_totals[w:]),
-              "pooled": f"{scenes.built + scenes.reused}/{n}"}
+    result = {"preset": preset, "n": 0, "pooled": f"{scenes.built + scenes.reused}/{n}"}
     if a.bare_frames > 0:  # the same frames again, each as a fresh scene: Mitsuba's own costs
         specs = [sample_scene(cfg.scene, rng, seed=frame_seed(t, j), frame_index=t.shard_in_condition * fps + j)
                  for t in plan(cfg) for j, rng in enumerate(frame_rngs(t, fps))][w:w + a.bare_frames]
-        kernel, build = bare_costs(specs, variant, a.threads)
-        result.update(kernel=statistics.median(kernel), build=statistics.median(build))
-        print(f"bare kernel (mi.render of a built scene) median {result['kernel']:.4f} s, bare scene build "
-              f"(mi.load_dict) median {result['build']:.4f} s, over {len(specs)} frames; pipeline per frame "
-              f"median {result['pipeline']:.4f} s over frames {w + 1}..{n}: {result['pipeline'] / result['kernel']:.2f}x")
+        kernel, build = bare_costs(specs, variant, a.threads, clock)
+        same = frame_totals[w:w + len(specs)]  # the pipeline's own times of exactly these frames
+        result.update(n=len(specs), pipeline=statistics.median(same), kernel=statistics.median(kernel),
+                      build=statistics.median(build))
+        print(f"frames {w + 1}..{w + len(specs)}: pipeline per frame median {result['pipeline']:.4f} s, bare kernel "
+              f"(mi.render of a built scene) median {result['kernel']:.4f} s, bare scene build (mi.load_dict) "
+              f"median {result['build']:.4f} s: pipeline / kernel {result['pipeline'] / result['kernel']:.2f}x")
     return result
 
 
