@@ -118,10 +118,14 @@ def run_preset(preset: str, a) -> dict:
     from msps_render.pipeline.execute import WorkerSettings, render_shard
     from msps_render.pipeline.plan import frame_rngs, frame_seed, plan
     from msps_render.render.kernels import COMPILE_STAGE, KernelLog
-    from msps_render.render.pool import ScenePool
     from msps_render.render.variant import activate, resolve_variant
     from msps_render.scene.sample import sample_scene
     from msps_render.timing import StageTimer
+
+    try:  # older trees (before issue 37) have no scene pool: run them as they are, for comparisons
+        from msps_render.render.pool import ScenePool
+    except ImportError:
+        ScenePool = None
 
     assert COMPILE_STAGE in STAGES
     probe_cfg = load_config(preset, a.set)
@@ -136,13 +140,14 @@ def run_preset(preset: str, a) -> dict:
     # launched the kernels (compiling is CPU work of this process), only their counts are kept
     timer = StageTimer(probe=log.probe if a.clock == "wall" else None, frame_counts=log.frame_counts, clock=clock)
     walls = []
-    scenes = ScenePool()  # one worker: its loaded scenes are kept across its shards
+    scenes = ScenePool() if ScenePool else None  # one worker: its loaded scenes are kept across its shards
+    pool_kw = {"scenes": scenes} if scenes is not None else {}
     with tempfile.TemporaryDirectory(prefix="msps-breakdown-") as out:
         (Path(out) / "shards").mkdir()
         ws = WorkerSettings(out_dir=out, variant=variant, threads=a.threads)
         t_all, c_all = time.perf_counter(), time.process_time()
         for task in plan(cfg):
-            info = render_shard(task, ws, timer=timer, scenes=scenes)
+            info = render_shard(task, ws, timer=timer, **pool_kw)
             walls.append(info["wall_seconds"])
         t_all, c_all = time.perf_counter() - t_all, time.process_time() - c_all
     log.close()
@@ -151,7 +156,8 @@ def run_preset(preset: str, a) -> dict:
     print()
     print(f"# preset {preset}, {n} frames ({n_shards} shards), variant {variant}, threads {a.threads}, "
           f"disk cache {'fresh' if os.environ.get('MSPS_BENCH_FRESH_HOME') else '~/.drjit'}, clock {a.clock}, "
-          f"load average {os.getloadavg()[0]:.1f}; scene pool: {scenes.built} built, {scenes.reused} reused")
+          f"load average {os.getloadavg()[0]:.1f}; scene pool: "
+          f"{f'{scenes.built} built, {scenes.reused} reused' if scenes is not None else 'none (older tree)'}")
     names = [s for s in STAGES if any(s in f for f in frames)] + sorted(
         {k for f in frames for k in f} - set(STAGES))
     per = {s: [f.get(s, 0.0) for f in frames] for s in names}
@@ -193,7 +199,7 @@ def run_preset(preset: str, a) -> dict:
     print("per frame (compiled / disk / new hashes / launches):",
           " ".join(f"{int(c['compiled'])}/{int(c['disk_loads'])}/{int(c['new_hashes'])}/{int(c['launches'])}"
                    for c in timer.counts))
-    result = {"preset": preset, "n": 0, "pooled": f"{scenes.built + scenes.reused}/{n}"}
+    result = {"preset": preset, "n": 0, "pooled": f"{scenes.built + scenes.reused}/{n}" if scenes is not None else "-"}
     if a.bare_frames > 0:  # the same frames again, each as a fresh scene: Mitsuba's own costs
         specs = [sample_scene(cfg.scene, rng, seed=frame_seed(t, j), frame_index=t.shard_in_condition * fps + j)
                  for t in plan(cfg) for j, rng in enumerate(frame_rngs(t, fps))][w:w + a.bare_frames]
