@@ -87,7 +87,8 @@ def test_reference_dataset_is_complete_and_verifies(reference):
         assert h.attrs["complete"] and h.attrs["format_version"] == 1
         assert h.attrs["config_hash"] and h.attrs["variant"].startswith("llvm")
         assert h[K.PATCH_IMAGE].shape[1:] == (16, 16, 3)
-        assert h[K.PATCH_IMAGE].fletcher32 and h[K.PATCH_IMAGE].compression == "lzf"
+        plist = h[K.PATCH_IMAGE].id.get_create_plist()  # the default filter: zstd (32015) + fletcher32 (3)
+        assert {plist.get_filter(i)[0] for i in range(plist.get_nfilters())} >= {32015, 3}
         ld = h[K.FRAME_LIGHT_DIRS][0]
         np.testing.assert_allclose(np.linalg.norm(ld, axis=1), 1, atol=1e-6)
         spec = json.loads(h[K.FRAME_SCENE_JSON].asstr()[0])

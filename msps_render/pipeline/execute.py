@@ -29,6 +29,7 @@ from msps_render.pipeline.config import DatasetConfig
 from msps_render.pipeline.plan import Task, frame_rngs, frame_seed, sensor_rng
 from msps_render.render import render_frame
 from msps_render.render.memory import kernel_cache_misses, release_frame_memory
+from msps_render.render.pool import ScenePool
 from msps_render.render.sensor import apply_sensor
 from msps_render.render.variant import activate, mitsuba_info
 from msps_render.scene.sample import sample_scene
@@ -59,12 +60,16 @@ def check_material_pool(task: Task, ws: WorkerSettings, cfg: DatasetConfig) -> N
                          "give every worker the same MSPS_MERL_DIR / brdf/ files")
 
 
-def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None) -> dict:
+def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None,
+                 scenes: ScenePool | None = None) -> dict:
     """Sample, render, patchify and write one shard. Returns its manifest entry.
 
     `timer` (optional) times every step frame by frame (benchmarks/bench_breakdown.py);
-    the shard's write is shared out evenly over its frames.
+    the shard's write is shared out evenly over its frames.  `scenes`: the worker's pool of
+    loaded scenes, kept across its shards (None: a pool for this shard alone); frames do not
+    depend on it (render/pool.py).
     """
+    scenes = scenes if scenes is not None else ScenePool()
     cfg = DatasetConfig.model_validate_json(task.config_json)
     check_material_pool(task, ws, cfg)
     d = cfg.dataset
@@ -79,7 +84,7 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
         misses0 = kernel_cache_misses()
         tr = time.perf_counter()
         frame = render_frame(spec, variant=ws.variant, threads=ws.threads, timer=timer,
-                             per_light=d.storage.store_per_light)
+                             per_light=d.storage.store_per_light, scenes=scenes)
         render_s += time.perf_counter() - tr
         sensor = cfg.sensor  # optional sensor model (render/sensor.py), its own noise stream
         if sensor is not None and sensor.enabled:
@@ -148,8 +153,9 @@ def run_local(tasks: Iterable[Task], ws: WorkerSettings, workers: int, on_done: 
     """Render `tasks` in this process (`workers <= 1`) or in a `WorkerPool` of `workers` processes."""
     tasks = list(tasks)
     if workers <= 1:  # in-process: simplest to debug, same results
+        scenes = ScenePool()
         for t in tasks:
-            on_done(t, render_shard(t, ws))
+            on_done(t, render_shard(t, ws, scenes=scenes))
         return
     pool = WorkerPool(min(workers, len(tasks)) or 1, ws.variant, ws.threads, recycle_after)
     try:
@@ -232,6 +238,7 @@ def _worker_main(conn, lifeline, parent_pid: int, variant: str, threads: int | N
     except BaseException as e:
         conn.send(("error", None, *_portable(e)))
         return
+    scenes = ScenePool()  # loaded scenes kept across this worker's shards
     while True:
         try:
             msg = conn.recv()
@@ -241,7 +248,7 @@ def _worker_main(conn, lifeline, parent_pid: int, variant: str, threads: int | N
             break
         task, ws = msg
         try:
-            info = render_shard(task, ws)
+            info = render_shard(task, ws, scenes=scenes)
         except BaseException as e:
             conn.send(("error", task.name, *_portable(e)))
             continue

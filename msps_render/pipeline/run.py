@@ -8,6 +8,7 @@ import os
 import signal
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import msps_render
@@ -20,7 +21,7 @@ from msps_render.pipeline.config import (DatasetConfig, _qualify, config_hash, c
 from msps_render.pipeline.execute import WorkerSettings, run_dask, run_local
 from msps_render.pipeline.outdir import (OutLock, check_out_dir, remove_dataset, remove_if_empty,
                                          remove_temporaries, remove_unrecorded)
-from msps_render.pipeline.plan import plan
+from msps_render.pipeline.plan import Task, plan
 from msps_render.pipeline.validate import validate_inputs
 from msps_render.render.variant import mitsuba_info, resolve_variant
 
@@ -152,8 +153,9 @@ def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, schedu
     out.mkdir(parents=True, exist_ok=True)
     with OutLock(out):
         try:
-            return _render_locked(cfg, out, tasks, variant, workers, scheduler, resume, force, threads,
-                                  progress, recycle_after)
+            return _render_locked(RenderJob(cfg=cfg, out=out, tasks=tasks, variant=variant, workers=workers,
+                                            scheduler=scheduler, resume=resume, force=force, threads=threads,
+                                            progress=progress, recycle_after=recycle_after))
         finally:
             if created:  # still locked: another render cannot have started writing into it yet
                 remove_if_empty(out)
@@ -170,8 +172,28 @@ def worker_threads(threads: int | None, workers: int) -> int | None:
     return max(1, (os.cpu_count() or 1) // workers)
 
 
-def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, force, threads, progress,
-                   recycle_after) -> dict:
+@dataclass(frozen=True)
+class RenderJob:
+    """One `render_dataset` call once its inputs are checked and `out` is locked: what to render,
+    where, and how (`_render_locked` takes it whole instead of eleven positional values)."""
+
+    cfg: DatasetConfig
+    out: Path
+    tasks: list[Task]
+    variant: str
+    workers: int = 1
+    scheduler: str | None = None
+    resume: bool = False
+    force: bool = False
+    threads: int | None = None
+    progress: bool = True
+    recycle_after: int | None = None
+
+
+def _render_locked(job: RenderJob) -> dict:
+    cfg, out, tasks, variant, workers, scheduler = (job.cfg, job.out, job.tasks, job.variant, job.workers,
+                                                    job.scheduler)
+    force = job.force
     h = config_hash(cfg)
     existing = read_manifest(out)
     versions = _versions(variant)
@@ -184,7 +206,7 @@ def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, f
                                   f"({diff or existing.get('config_hash', '?')[:12] + ' != ' + h[:12]}); "
                                   f"`--resume` without --set finishes that dataset, or {_force_deletes(out, n)} "
                                   "with this config")
-        if not resume:
+        if not job.resume:
             raise InputError(out, f"already holds this dataset ({n} of {len(tasks)} shards finished); --resume "
                                   f"finishes it, or {_force_deletes(out, n)}")
         why = renderer_difference(existing.get("versions") or {}, versions)
@@ -218,14 +240,14 @@ def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, f
     write_manifest(out, manifest)
     todo = [t for t in tasks if t.name not in done]
 
-    bar = _Progress(len(tasks), len(done), sum(e["n_patches"] for e in done.values()), progress)
+    bar = _Progress(len(tasks), len(done), sum(e["n_patches"] for e in done.values()), job.progress)
 
     def on_done(task, info):
         manifest["shards"][task.name] = info
         write_manifest(out, manifest)
         bar.update(info["n_patches"])
 
-    ws = WorkerSettings(out_dir=str(out), variant=variant, threads=worker_threads(threads, workers),
+    ws = WorkerSettings(out_dir=str(out), variant=variant, threads=worker_threads(job.threads, workers),
                         material_pool=manifest.get("material_pool"))
     t0 = time.perf_counter()
     main_thread = threading.current_thread() is threading.main_thread()
@@ -235,11 +257,11 @@ def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, f
         if scheduler == "slurm":  # threads as given: the jobs' CPUs decide, not this machine's
             from msps_render.pipeline.slurm import run_slurm
 
-            run_slurm(todo, ws, workers, on_done, cfg.scheduler.slurm, threads)
+            run_slurm(todo, ws, workers, on_done, cfg.scheduler.slurm, job.threads)
         elif scheduler:
             run_dask(todo, ws, scheduler, workers, on_done)
         else:
-            run_local(todo, ws, workers, on_done, recycle_after=recycle_after)
+            run_local(todo, ws, workers, on_done, recycle_after=job.recycle_after)
     except KeyboardInterrupt:
         stopped_by = signal.SIGINT
     except _Terminated:

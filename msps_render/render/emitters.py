@@ -22,15 +22,16 @@ def _emitter_names(params, spec: SceneSpec) -> list[str]:
     return names
 
 
-def render_emitters_one_pass(mi, scene, ids: list[str], spp: int, seed: int) -> list[np.ndarray]:
+def render_emitters_one_pass(mi, scene, ids: list[str], spp: int, seed: int, sensor=None) -> list[np.ndarray]:
     """One image per emitter id (in `ids` order) from ONE render with the scene's `msps_multilight`
     integrator: every light is sampled at every path vertex and written to its own AOV channels,
-    read back by name from the film."""
+    read back by name from the film.  `sensor`: the camera (default: the scene's first)."""
     integrator = scene.integrator()
     if list(getattr(integrator, "emitter_ids", ())) != list(ids):
         raise RuntimeError(f"the scene's integrator is not msps_multilight over emitters {ids}: {integrator}")
-    mi.render(scene, spp=spp, seed=seed)
-    return read_emitter_images(scene.sensors()[0].film(), ids)
+    sensor = sensor if sensor is not None else scene.sensors()[0]
+    mi.render(scene, sensor=sensor, spp=spp, seed=seed)
+    return read_emitter_images(sensor.film(), ids)
 
 
 def render_emitters_separately(mi, scene, spec: SceneSpec) -> list[np.ndarray]:

@@ -125,16 +125,12 @@ def appearance_truth(mi, scene, spec: SceneSpec) -> tuple[np.ndarray, np.ndarray
     """
     import drjit as dr
 
-    from msps_render.render.textures import ALBEDO, WEIGHT, constant_albedo
+    from msps_render.render.textures import ALBEDO, WEIGHT
 
     W, H = spec.camera.width, spec.camera.height
     parts = [s for s in scene.shapes() if s.id().startswith("part")]
     if not parts or not all(s.has_attribute(ALBEDO) for s in parts):
-        _, mask, _, part = ground_truth(mi, scene, spec)
-        albedo = np.zeros((H, W, 3), np.float32)
-        for p, m in enumerate(spec.materials):
-            albedo[part == p] = constant_albedo(m)
-        return albedo, np.zeros((H, W), np.float32)
+        return constant_appearance(spec, ground_truth(mi, scene, spec)[3])
     sensor = scene.sensors()[0]
     if dr.is_jit_v(mi.Float):
         idx = dr.arange(mi.UInt32, W * H)
@@ -159,3 +155,41 @@ def appearance_truth(mi, scene, spec: SceneSpec) -> tuple[np.ndarray, np.ndarray
     albedo[off] = 0.0
     weight[off] = 0.0
     return albedo.reshape(H, W, 3).astype(np.float32), weight.reshape(H, W).astype(np.float32)
+
+
+def pooled_truth(mi, scene, sensor, spec: SceneSpec, part_attribute: str):
+    """`frame_truth` of a pooled scene (`render.pool`): the mesh lies in its object frame and the
+    camera turned by R^T, so normals and points come back to the camera frame through R; the
+    part is the face attribute `part_attribute`; the albedo is each part's constant one (pooled
+    scenes carry no textures) and the blend weight 0.  (normal, mask, depth, part, albedo, blend)."""
+    import drjit as dr
+
+    W, H = spec.camera.width, spec.camera.height
+    idx = dr.arange(mi.UInt32, W * H)
+    pos = mi.Point2f((mi.Float(idx % W) + 0.5) / W, (mi.Float(idx // W) + 0.5) / H)
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
+    si = scene.ray_intersect(ray)
+    valid = si.is_valid()
+    n = si.sh_frame.n
+    n = dr.select(dr.dot(n, ray.d) > 0, -n, n)  # face the camera
+    part_f = si.shape.eval_attribute_1(part_attribute, si, valid)
+    dr.eval(valid, n, si.p, part_f)
+    R = np.asarray(spec.shape.rotation, dtype=np.float64)
+    mask = np.array(valid, dtype=bool)
+    normal = np.stack([np.array(n.x), np.array(n.y), np.array(n.z)], -1) @ R.T
+    p = np.stack([np.array(si.p.x), np.array(si.p.y), np.array(si.p.z)], -1).astype(np.float64)
+    depth = (spec.camera.distance - p @ R[2]).astype(np.float32)
+    part = np.where(mask, np.rint(np.array(part_f)), -1).astype(np.int8)
+    normal, mask, depth, part = _finish_geometry(normal, mask, depth, part, W, H)
+    albedo, blend = constant_appearance(spec, part)
+    return normal, mask, depth, part, albedo, blend
+
+
+def constant_appearance(spec: SceneSpec, part: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Albedo (H, W, 3) and blend weight (H, W) of untextured materials from the part map."""
+    from msps_render.render.textures import constant_albedo
+
+    albedo = np.zeros(part.shape + (3,), np.float32)
+    for p, m in enumerate(spec.materials):
+        albedo[part == p] = constant_albedo(m)
+    return albedo, np.zeros(part.shape, np.float32)

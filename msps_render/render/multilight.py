@@ -28,6 +28,7 @@ across scenes of the same structure.  Mitsuba is imported lazily.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Sequence
 
@@ -37,7 +38,36 @@ from msps_render.render.variant import register_plugin
 
 PLUGIN_NAME = "msps_multilight"
 RR_DEPTH = 5  # Mitsuba's default for `path`
+PART_ATTRIBUTE = "face_part"  # pooled scenes: the material part of each face (render.pool)
 _CHANNELS = ("R", "G", "B")
+
+
+@dataclasses.dataclass
+class PathState:
+    """The state of one camera path through the `dr.while_loop` of `MultiLightIntegrator.sample`
+    (drjit traverses dataclasses field by field).  `beta`: throughput per group (all emitters in
+    RGB, one per emitter in spectral variants); `acc`: radiance gathered per emitter; `prev_*`:
+    the previous vertex and its BSDF sample, for the environment's MIS weight."""
+
+    sampler: object
+    ray: object
+    depth: object
+    active: object
+    valid_ray: object  # the camera ray hit something (or the environment is visible)
+    eta: object
+    prev_si: object
+    prev_pdf: object
+    prev_delta: object
+    beta: list
+    acc: list
+
+
+@dataclasses.dataclass(frozen=True)
+class PartTable:
+    """Pooled scenes: the frame's BSDF per material part (kept alive here) and their device pointers."""
+
+    bsdfs: list
+    table: object  # mi.BSDFPtr, opaque
 
 
 def channel_names(emitter_id: str) -> list[str]:
@@ -155,6 +185,7 @@ def _plugin_class(variant: str):
             if self.max_depth < 0:
                 self.max_depth = 2 ** 31 - 1
             self.tables: dict[str, dict] = {}
+            self.parts: PartTable | None = None
 
         # ---- configuration
         def set_bands(self, grid: np.ndarray, bands: dict[str, np.ndarray]) -> None:
@@ -169,6 +200,28 @@ def _plugin_class(variant: str):
                 for v in dev.values():
                     dr.make_opaque(v)
                 self.tables[e] = dev
+
+        def set_part_bsdfs(self, bsdfs: Sequence | None) -> None:
+            """Pooled scenes (`render.pool`): the BSDF of part p is `bsdfs[p]`, looked up through the
+            hit face's `PART_ATTRIBUTE`, not the shape's own BSDF (None: the shape's BSDF, as Mitsuba).
+            The table is an opaque device array, so new BSDFs every frame keep the kernel."""
+            if bsdfs is None:
+                self.parts = None
+                return
+            bsdfs = list(bsdfs)
+            table = dr.zeros(mi.BSDFPtr, max(len(bsdfs), 1))
+            for p, b in enumerate(bsdfs):
+                if b is not None:
+                    dr.scatter(table, mi.BSDFPtr(b), mi.UInt32(p))
+            dr.make_opaque(table)
+            self.parts = PartTable(bsdfs, table)
+
+        def _bsdf(self, si, ray, active):
+            """The BSDF at `si`: the shape's own, or its face's part's in a pooled scene."""
+            if self.parts is None:
+                return si.bsdf(ray)
+            part = mi.UInt32(si.shape.eval_attribute_1(PART_ATTRIBUTE, si, active))
+            return dr.gather(mi.BSDFPtr, self.parts.table, part, active & si.is_valid())
 
         def aov_names(self):
             return [c for e in self.emitter_ids for c in channel_names(e)]
@@ -216,10 +269,12 @@ def _plugin_class(variant: str):
             needs_bsdf_sample = env is not None or continues
             ctx = mi.BSDFContext()
 
-            def body(sampler, ray, depth, active, valid_ray, eta, prev_si, prev_pdf, prev_delta, beta, acc):
+            def body(st: PathState) -> tuple[PathState]:
+                sampler, ray, depth, active = st.sampler, st.ray, st.depth, st.active
+                prev_si, prev_pdf, prev_delta = st.prev_si, st.prev_pdf, st.prev_delta
                 si = scene.ray_intersect(ray, mi.RayFlags.All, depth == 0, active)
-                acc = list(acc)
-                beta = list(beta)
+                acc = list(st.acc)
+                beta = list(st.beta)
                 # ---- environment hit by the previous BSDF sample (MIS against env sampling)
                 if env is not None:
                     hit = active & ~si.is_valid()
@@ -233,7 +288,7 @@ def _plugin_class(variant: str):
                     acc[env] = dr.select(hit, acc[env] + beta[group_of[env]] * le, acc[env])
 
                 active_next = active & (depth + 1 < self.max_depth) & si.is_valid()
-                bsdf = si.bsdf(ray)
+                bsdf = self._bsdf(si, ray, active)
                 flags = bsdf.flags()
                 active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth)
                 transmits = mi.has_flag(flags, mi.BSDFFlags.Transmission)
@@ -262,10 +317,11 @@ def _plugin_class(variant: str):
                         mis = _mis_weight(ds.pdf, pdf)
                     acc[e] = dr.select(ok, acc[e] + beta[group_of[e]] * val * em_w * mis, acc[e])
 
-                valid_ray = valid_ray | (active & si.is_valid())
+                st.valid_ray = st.valid_ray | (active & si.is_valid())
+                st.beta, st.acc = beta, acc
                 if not needs_bsdf_sample:
-                    return sampler, ray, depth, active & False, valid_ray, eta, prev_si, prev_pdf, prev_delta, \
-                        beta, acc
+                    st.active = active & False
+                    return (st,)
                 # ---- BSDF sampling: the lead group picks the direction; the others reuse its random numbers
                 u1, u2 = sampler.next_1d(), sampler.next_2d()
                 bs, w_lead = bsdf.sample(ctx, si_g[lead], u1, u2, active_next)
@@ -274,11 +330,11 @@ def _plugin_class(variant: str):
                         beta[g] = beta[g] * w_lead
                     elif update_group[g]:
                         beta[g] = beta[g] * bsdf.sample(ctx, si_g[g], u1, u2, active_next)[1]
-                ray = si.spawn_ray(si.to_world(bs.wo))
-                eta = eta * bs.eta
-                prev_si = mi.Interaction3f(si.t, si.time, si.wavelengths, si.p, si.n)
-                prev_pdf = bs.pdf
-                prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+                st.ray = si.spawn_ray(si.to_world(bs.wo))
+                st.eta = eta = st.eta * bs.eta
+                st.prev_si = mi.Interaction3f(si.t, si.time, si.wavelengths, si.p, si.n)
+                st.prev_pdf = bs.pdf
+                st.prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
                 # ---- Russian roulette on the largest throughput of any group (one decision per path)
                 depth = dr.select(si.is_valid(), depth + 1, depth)
                 beta_max = dr.max(mi.unpolarized_spectrum(beta[0]))
@@ -288,20 +344,19 @@ def _plugin_class(variant: str):
                 rr_prob = dr.minimum(beta_max * eta * eta, 0.95)
                 rr_active = depth >= self.rr_depth
                 rr_continue = sampler.next_1d() < rr_prob
-                beta = [dr.select(rr_active, b / rr_prob, b) for b in beta]
-                active = active_next & (~rr_active | rr_continue) & (beta_max != 0.0)
-                return sampler, ray, depth, active, valid_ray, eta, prev_si, prev_pdf, prev_delta, beta, acc
+                st.beta = [dr.select(rr_active, b / rr_prob, b) for b in beta]
+                st.depth = depth
+                st.active = active_next & (~rr_active | rr_continue) & (beta_max != 0.0)
+                return (st,)
 
             # as Mitsuba's `path`: a camera ray that escapes counts only if the environment is visible
-            valid0 = mi.Bool(not self.hide_emitters and env is not None)
-            state = (sampler, mi.Ray3f(ray), mi.UInt32(0), mi.Bool(active), valid0, mi.Float(1.0),
-                     dr.zeros(mi.Interaction3f), mi.Float(1.0), mi.Bool(True),
-                     [mi.Spectrum(1.0) for _ in groups], [mi.Spectrum(0.0) for _ in range(n)])
-            state = dr.while_loop(state=state, cond=lambda *s: s[3], body=body,
-                                  labels=("sampler", "ray", "depth", "active", "valid_ray", "eta", "prev_si",
-                                          "prev_pdf", "prev_delta", "beta", "acc"),
-                                  label=PLUGIN_NAME)
-            valid_ray, acc = state[4], state[10]
+            start = PathState(sampler=sampler, ray=mi.Ray3f(ray), depth=mi.UInt32(0), active=mi.Bool(active),
+                              valid_ray=mi.Bool(not self.hide_emitters and env is not None), eta=mi.Float(1.0),
+                              prev_si=dr.zeros(mi.Interaction3f), prev_pdf=mi.Float(1.0), prev_delta=mi.Bool(True),
+                              beta=[mi.Spectrum(1.0) for _ in groups], acc=[mi.Spectrum(0.0) for _ in range(n)])
+            (end,) = dr.while_loop(state=(start,), cond=lambda st: st.active, body=body, labels=("path",),
+                                   label=PLUGIN_NAME)
+            valid_ray, acc = end.valid_ray, end.acc
             aovs = []
             for e in range(n):
                 if spectral:

@@ -17,7 +17,9 @@ import numpy as np
 
 from msps_render.frame import Frame
 from msps_render.render.emitters import render_emitters_one_pass, render_emitters_separately
-from msps_render.render.ground_truth import frame_truth
+from msps_render.render.ground_truth import frame_truth, pooled_truth
+from msps_render.render.multilight import PART_ATTRIBUTE
+from msps_render.render.pool import ScenePool, poolable
 from msps_render.render.scene_dict import build_scene_dict, emitter_ids, one_pass
 from msps_render.render.spectral import render_spectral_frame
 from msps_render.render.variant import activate, resolve_variant
@@ -26,25 +28,56 @@ from msps_render.timing import StageTimer, stage
 
 
 def render_frame(spec: SceneSpec, variant: str | None = None, threads: int | None = None,
-                 per_light: bool = False, timer: StageTimer | None = None) -> Frame:
+                 per_light: bool = False, timer: StageTimer | None = None, scenes: ScenePool | None = None) -> Frame:
     """Render one scene. `variant=None` resolves the best working variant for `spec.mode`.
-    `timer` (optional) times the steps (benchmarks/bench_breakdown.py)."""
+    `timer` (optional) times the steps (benchmarks/bench_breakdown.py).
+
+    Frames that a scene pool accepts (`pool.poolable`: repeated shapes, one-pass RGB) always come
+    from a pooled scene, so a SceneSpec renders to the same pixels wherever it is rendered (a
+    corpus worker, a re-render from a stored spec, `msps scene render`): `scenes` is the worker's
+    pool, kept across frames; without one a pool for this frame alone is used (same pixels, same
+    cost as a fresh scene).  Every other frame is built fresh (`render_fresh`)."""
     variant = variant or resolve_variant(spec.mode)
     mi = activate(variant, threads)
     if spec.mode == "spectral":  # not split into steps: all of it is timed as "render"
         with stage(timer, "render"):
             return render_spectral_frame(spec, mi, variant, per_light=per_light)
+    if not poolable(spec, mi):
+        return render_fresh(spec, variant, threads, per_light, timer)
+    scenes = scenes if scenes is not None else ScenePool(max_scenes=1)
+    with scenes.frame(spec, mi, timer) as pooled:
+        with stage(timer, "ground truth"):
+            truth = pooled_truth(mi, pooled.scene, pooled.sensor, spec, PART_ATTRIBUTE)
+        with stage(timer, "render"):
+            images = render_emitters_one_pass(mi, pooled.scene, emitter_ids(spec), spec.integrator.spp,
+                                              spec.integrator.seed, pooled.sensor)
+    return _frame(mi, spec, variant, truth, images, per_light)
+
+
+def render_fresh(spec: SceneSpec, variant: str | None = None, threads: int | None = None,
+                 per_light: bool = False, timer: StageTimer | None = None) -> Frame:
+    """Render one RGB scene from a scene built for it alone (`mi.load_dict` of `build_scene_dict`):
+    every frame `render_frame` does not pool, and the reference the pooled frames are tested
+    against (tests/test_pool.py)."""
+    variant = variant or resolve_variant(spec.mode)
+    mi = activate(variant, threads)
     d = build_scene_dict(spec, mi, timer)
     with stage(timer, "scene load"):
         scene = mi.load_dict(d)
     with stage(timer, "ground truth"):
-        normal, mask, depth, part, albedo, blend = frame_truth(mi, scene, spec)
+        truth = frame_truth(mi, scene, spec)
     with stage(timer, "render"):
         if one_pass(spec, mi):
             images = render_emitters_one_pass(mi, scene, emitter_ids(spec), spec.integrator.spp,
                                               spec.integrator.seed)
         else:
             images = render_emitters_separately(mi, scene, spec)
+    return _frame(mi, spec, variant, truth, images, per_light)
+
+
+def _frame(mi, spec: SceneSpec, variant: str, truth: tuple, images: list[np.ndarray], per_light: bool) -> Frame:
+    """The Frame of a render: per-emitter images summed (lights, then the environment), ground truth."""
+    normal, mask, depth, part, albedo, blend = truth
     env_img = images.pop() if spec.environment is not None else None
     per = np.stack(images) if images else np.zeros((0,) + normal.shape, np.float32)
     image = per.sum(axis=0) + (env_img if env_img is not None else 0.0)

@@ -22,7 +22,7 @@ from msps_render.render.multilight import integrator_dict
 from msps_render.render.textures import subdivide_to_edge, vertex_attributes
 from msps_render.scene.envmap import envmap_pixels
 from msps_render.scene.shapes import build_mesh, face_parts
-from msps_render.scene.spec import SceneSpec
+from msps_render.scene.spec import CameraSpec, SceneSpec
 from msps_render.timing import StageTimer, stage
 
 ENV_KEY = "environment"
@@ -39,17 +39,22 @@ def _rgb(mi, v):
     return {"type": "rgb", "value": [float(x) for x in v]}
 
 
-def _sensor(mi, spec: SceneSpec) -> dict:
-    c = spec.camera
+def camera_to_world(mi, c: CameraSpec):
+    """The sensor's `to_world`: on the +z axis looking at the origin, y up (orthographic: scaled)."""
     T = mi.ScalarTransform4f
     look = T().look_at(origin=[0.0, 0.0, c.distance], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0])
+    return look @ T().scale([c.extent, c.extent, 1.0]) if c.kind == "orthographic" else look
+
+
+def _sensor(mi, spec: SceneSpec) -> dict:
+    c = spec.camera
     film = {"type": "hdrfilm", "width": c.width, "height": c.height, "rfilter": {"type": "box"},
             "pixel_format": "rgb", "component_format": "float32"}
     sampler = {"type": spec.integrator.sampler, "sample_count": spec.integrator.spp, "seed": spec.integrator.seed}
     if c.kind == "orthographic":
-        return {"type": "orthographic", "to_world": look @ T().scale([c.extent, c.extent, 1.0]),
+        return {"type": "orthographic", "to_world": camera_to_world(mi, c),
                 "near_clip": 0.01, "far_clip": 2 * c.distance + 10, "film": film, "sampler": sampler}
-    return {"type": "perspective", "to_world": look, "fov": c.fov_deg, "fov_axis": "smaller",
+    return {"type": "perspective", "to_world": camera_to_world(mi, c), "fov": c.fov_deg, "fov_axis": "smaller",
             "near_clip": 0.01, "far_clip": 2 * c.distance + 10, "film": film, "sampler": sampler}
 
 

@@ -132,17 +132,29 @@ def random_rotation(rng: np.random.Generator) -> tuple:
     return tuple(tuple(float(x) for x in row) for row in R)
 
 
-def build_mesh(shape: ShapeSpec) -> TriMesh:
-    """ShapeSpec -> triangle mesh in the camera/world frame, inside radius `shape.radius`."""
+GENERATED_KINDS = ("blobby", "primitive", "procedural")  # pure functions of their parameters: cached
+
+
+def canonical_mesh(shape: ShapeSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The mesh before its rotation (float64 vertices, int64 faces, UVs or None); generated shapes
+    come from the per-process cache (read-only arrays)."""
     if shape.kind == "sphere":
         raise ValueError("the analytic sphere has no mesh; the renderer uses Mitsuba's sphere")
-    if shape.kind in ("blobby", "primitive", "procedural"):  # pure functions of their parameters
-        v, f, uv = _canonical_cached(shape.kind, shape.name, tuple(shape.sh_coeffs), shape.subdivisions,
-                                     tuple(shape.params.items()), float(shape.radius))
-    else:
-        v, f, uv = _canonical(shape)
-    R = np.asarray(shape.rotation, dtype=np.float64)
-    v = v @ R.T
+    if shape.kind in GENERATED_KINDS:
+        return _canonical_cached(shape.kind, shape.name, tuple(shape.sh_coeffs), shape.subdivisions,
+                                 tuple(shape.params.items()), float(shape.radius))
+    return _canonical(shape)
+
+
+def rotated_vertices(shape: ShapeSpec, v: np.ndarray) -> np.ndarray:
+    """Canonical vertices in the camera/world frame (float64): world = object @ R.T."""
+    return v @ np.asarray(shape.rotation, dtype=np.float64).T
+
+
+def build_mesh(shape: ShapeSpec) -> TriMesh:
+    """ShapeSpec -> triangle mesh in the camera/world frame, inside radius `shape.radius`."""
+    v, f, uv = canonical_mesh(shape)
+    v = rotated_vertices(shape, v)
     if shape.kind == "procedural":  # keep creases sharp: split vertices across sharp edges
         v, f, n = crease_normals(v, f)
     else:
@@ -203,12 +215,16 @@ def _canonical_cached(kind: str, name: str, sh_coeffs: tuple, subdivisions: int,
 # ------------------------------------------------------------------- parts
 def face_parts(mesh: TriMesh, split: SplitSpec) -> np.ndarray:
     """Part index per face (int), spatially coherent by construction."""
-    F = len(mesh.faces)
+    return split_faces(mesh.vertices, mesh.faces, split)
+
+
+def split_faces(v: np.ndarray, f: np.ndarray, split: SplitSpec) -> np.ndarray:
+    """`face_parts` of the mesh (v, f): vertices in the frame the split is defined in (the world)."""
+    F = len(f)
     if split.kind == "none" or split.n_parts == 1:
         return np.zeros(F, dtype=np.int64)
     # face centroids: the float32 sum of the three corners in order, divided by 3 -- the same
     # operations `mesh.vertices[mesh.faces].mean(axis=1)` performs, without the (F, 3, 3) copy
-    v, f = mesh.vertices, mesh.faces
     c = ((v[f[:, 0]] + v[f[:, 1]] + v[f[:, 2]]) / v.dtype.type(3)).astype(np.float64)
     if split.kind == "planes":
         nrm = np.asarray(split.normals, dtype=np.float64)
