@@ -132,7 +132,7 @@ def _on_sigterm(signum, frame):
 def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, scheduler: str | None = None,
                    resume: bool = False, force: bool = False, variant: str | None = None,
                    threads: int | None = None, progress: bool = True, recycle_after: int | None = None,
-                   max_tasks_per_child: int | None = None) -> dict:
+                   max_tasks_per_child: int | None = None, space_check: bool = True) -> dict:
     """Render (or finish) the dataset `cfg` into `out`. Returns the final manifest.
 
     Order (docs/reliability.md): validate every input, check `out` (a directory
@@ -140,6 +140,7 @@ def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, schedu
     workers, keep every finished shard in the manifest, delete temporaries and
     raise `Interrupted`; any other failure before the first shard leaves nothing.
     `recycle_after`: replace a local worker after that many shards (None: never).
+    `space_check`: refuse (warn when tight) before rendering when the shards will not fit (`space.py`).
     """
     recycle_after = recycle_after if recycle_after is not None else max_tasks_per_child  # old name
     out = Path(out).expanduser().absolute()  # Dask workers resolve relative paths in their own cwd
@@ -153,7 +154,7 @@ def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, schedu
     with OutLock(out):
         try:
             return _render_locked(cfg, out, tasks, variant, workers, scheduler, resume, force, threads,
-                                  progress, recycle_after)
+                                  progress, recycle_after, space_check)
         finally:
             if created:  # still locked: another render cannot have started writing into it yet
                 remove_if_empty(out)
@@ -171,7 +172,7 @@ def worker_threads(threads: int | None, workers: int) -> int | None:
 
 
 def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, force, threads, progress,
-                   recycle_after) -> dict:
+                   recycle_after, space_check=True) -> dict:
     h = config_hash(cfg)
     existing = read_manifest(out)
     versions = _versions(variant)
@@ -198,6 +199,8 @@ def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, f
                 raise InputError(out, f"--resume refused: the measured materials found here differ from those "
                                       f"its {n} shards drew from ({why}); use the same MSPS_MERL_DIR / brdf/ "
                                       f"files, or {_force_deletes(out, n)}")
+    if space_check:
+        _check_space(cfg, out, tasks, existing, force, h, variant, threads)
     if existing is not None and (force or existing.get("config_hash") != h or not existing.get("shards")):
         remove_dataset(out)  # only the toolkit's own files
         existing = None
@@ -276,6 +279,26 @@ def _render_locked(cfg, out: Path, tasks, variant, workers, scheduler, resume, f
     return manifest
 
 
+def _check_space(cfg, out: Path, tasks, existing: dict | None, force: bool, h: str, variant: str,
+                 threads: int | None) -> None:
+    """Refuse before rendering when the shards still to render will not fit under `out` (counting the
+    old shards this render deletes first); warn when they take most of the room."""
+    import sys
+
+    from msps_render.pipeline.space import check_space, space_line
+
+    keep = existing is not None and not force and existing.get("config_hash") == h
+    todo = len(tasks) - (len(existing.get("shards") or {}) if keep else 0)
+    reclaim = 0 if keep else sum(p.stat().st_size for p in (out / SHARD_DIR).glob("shard-*.h5"))
+    check = check_space(cfg, tasks, todo, out, variant, threads, reclaim)
+    if not check.fits:
+        raise InputError(out, f"not enough free space: {space_line(check)}; make room, choose another --out, "
+                              "or --no-space-check to render anyway (a full disk then stops it cleanly and "
+                              "--resume finishes it)")
+    if check.tight:
+        print(f"warning: {out}: {space_line(check)}; the disk may fill up before the end", file=sys.stderr)
+
+
 def zero_patch_cause(cfg: DatasetConfig) -> str:
     """Why frames give no patch: the patch grid against the frame size and the coverage threshold."""
     p, c = cfg.dataset.patches, cfg.scene.camera
@@ -314,14 +337,20 @@ def _write_card(out: Path) -> None:
 
 
 def _cleanup_failed(out: Path, manifest: dict) -> None:
-    """After an error: no temporaries; with no shard rendered, no manifest and no shards/ either."""
+    """After an error: no temporaries; with no shard rendered, no manifest and no shards/ either.
+    Where the manifest cannot be written (the disk is still full), the one on disk stays (written
+    atomically after every shard) and the shards it does not record go: disk == manifest, and the
+    error that stopped the render is the one reported."""
     remove_temporaries(out)
+    try:
+        if manifest["shards"]:
+            write_manifest(out, manifest)
+        else:
+            (out / MANIFEST).unlink(missing_ok=True)
+            remove_if_empty(out / SHARD_DIR)
+    except OSError:
+        manifest = read_manifest(out) or {"shards": {}}
     remove_unrecorded(out, manifest)
-    if manifest["shards"]:
-        write_manifest(out, manifest)
-    else:
-        (out / MANIFEST).unlink(missing_ok=True)
-        remove_if_empty(out / SHARD_DIR)
 
 
 @contextlib.contextmanager
