@@ -94,3 +94,41 @@ def writing(path: str | Path) -> Iterator[None]:
         if code is None:
             raise
         raise WriteFailed(path, code) from None
+
+
+def save_figure(fig, path: str | Path, **kw) -> Path:
+    """`fig.savefig` (matplotlib) to `path` atomically, its format from the suffix."""
+    with atomic_write(path) as tmp:
+        fig.savefig(tmp, format=Path(path).suffix.lstrip(".") or "png", **kw)
+    return Path(path)
+
+
+class AppendLog:
+    """A text file appended a record at a time (a training run's metrics.jsonl): each `write` goes to
+    disk at once (no buffer left to fail again at close), and a write fault is one `WriteFailed`
+    naming the file.  A fault may leave a torn last line: readers skip it."""
+
+    def __init__(self, path: str | Path):
+        self.name = str(path)
+        with writing(self.name):
+            self._fd = os.open(self.name, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+
+    def write(self, text: str) -> None:
+        data = memoryview(text.encode("utf-8"))
+        with writing(self.name):
+            while data:
+                data = data[os.write(self._fd, data):]
+
+    def flush(self) -> None:
+        """Nothing to do: every `write` is already in the file."""
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def __enter__(self) -> "AppendLog":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
