@@ -317,3 +317,26 @@ def test_read_only_filesystem_is_one_line_before_any_work(cmd, reference, tmpfs)
     line = one_line_error(cli(*args, timeout=120))
     assert str(ro) in line and ("Read-only file system" in line or "not writable" in line), line
     assert listing(ro) == []
+
+
+def test_shard_bytes_equal_the_default_drivers(tmp_path, monkeypatch):
+    """The writer builds shards with HDF5's `core` driver (one write at close) so a full disk cannot crash
+    it; the files must be the bytes the default driver writes (datasets resumed across versions)."""
+    import h5py
+
+    from msps_render.dataset.writer import write_shard
+    from test_dataset import _content
+
+    for i, c in enumerate([_content(), _content(300, 40, 3, True), _content(70, 40, 1, False)]):
+        write_shard(tmp_path / f"core{i}.h5", c)
+        real, asked = h5py.File, []
+
+        def default_driver(name, mode, driver=None, backing_store=None, **kw):
+            asked.append(driver)
+            return real(name, mode, **kw)
+
+        monkeypatch.setattr(h5py, "File", default_driver)
+        write_shard(tmp_path / f"sec2{i}.h5", c)
+        monkeypatch.undo()
+        assert asked == ["core"]
+        assert (tmp_path / f"core{i}.h5").read_bytes() == (tmp_path / f"sec2{i}.h5").read_bytes()
