@@ -7,7 +7,7 @@ An upper bound, not a method: each frame's ground-truth albedo chromaticity (log
 channel mean, so the brightness stays unknown), box-blurred over k x k pixels inside the object, is
 divided out of the image and calibrated Lambertian PS gives the normals where all three lights
 reach the pixel (the network's normals elsewhere).  k = 1 is the exact colour.  If even the blurred
-truth does not reach a target, no local colour estimate of that resolution will (docs/reproducing.md
+truth does not reach a target, no local colour estimate of that resolution will (docs/history.md
 "Stage 9").  Ground-truth albedo needs frames rendered with `store_frames = true` (shards from v0.5 on).
 """
 from __future__ import annotations

@@ -3,7 +3,7 @@
     python benchmarks/field_selfcal_probe.py --data data/unseen-test-smooth --data data/unseen-test-patches \
         --out runs/field-selfcal.json
 
-A probe, not a method (docs/reproducing.md "Stage 11").  `models/selfcal.py` fits one albedo
+A probe, not a method (docs/history.md "Stage 11").  `models/selfcal.py` fits one albedo
 a = 1/rho per object from || A^-1 diag(a) c(x) || = 1 over its lit pixels.  Here a(x) is a smooth
 field instead: log a on a `--grid` x `--grid` lattice, bilinear over the frame, a squared-gradient
 penalty `--lam`, fitted by L-BFGS from the grey start.  Per frame it reports the normals' error where

@@ -1,8 +1,8 @@
-"""Probe, not built: the network-colour loop per colour region instead of per object (docs/reproducing.md
+"""Probe, not built: the network-colour loop per colour region instead of per object (docs/history.md
 "Stage 13").  Validation frames only.
 
     python benchmarks/netcal_regions_probe.py --data data/val-frames --data data/val-frames-texture \
-        --data data/val-frames-colour --data data/val-frames-grey --model models/dualcue-cpu-v0.5.pt
+        --data data/val-frames-colour --data data/val-frames-grey --model models/dualcue-cpu.pt
 
 Per frame: selfcal -> network -> refine ("base"); the object-level loop (models/netcal.py, "netcal");
 and regions between colour edges (models/segments.colour_regions) each divided by its own colour AND

@@ -1,4 +1,4 @@
-"""Choose the network-colour loop's settings on validation frames (docs/reproducing.md "Stage 13").
+"""Choose the network-colour loop's settings on validation frames (docs/history.md "Stage 13").
 
     python benchmarks/netcal_sweep.py --data data/val-frames --data data/val-frames-grey \
         --data data/val-frames-colour --data data/val-frames-texture --model models/dualcue-cpu.pt \

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Reproduce the dual-cue vs ablations vs Lambertian comparison on toolkit-generated data
-# (docs/reproducing.md). ~85 min on a 2-core CPU: ~5 min rendering, 40 min of training
+# (docs/history.md). ~85 min on a 2-core CPU: ~5 min rendering, 40 min of training
 # (the three models train concurrently, one thread each), ~30 min for the equal-steps
 # dual-cue run, ~3 min evaluation.
 # Usage: bash benchmarks/reproduce.sh [DATA_DIR] [RUN_DIR]

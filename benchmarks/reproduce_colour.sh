@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # Stage 6 (issue 20, colour and appearance): corpora with the full albedo gamut, textures, measured
 # blends and random rigs; a warm-started fine-tune of v0.4; the colour, texture, rig and real-capture
-# evaluations (docs/reproducing.md "Stage 6").  Resumable: rerun after an interruption and every
+# evaluations (docs/history.md "Stage 6").  Resumable: rerun after an interruption and every
 # finished shard, training step and report is kept.  Run from the repository root with ../shared/data
 # beside the checkout (test meshes, DiLiGenT captures).
 # Usage: bash benchmarks/reproduce_colour.sh [DATA_DIR] [RUN_DIR] [MINUTES]
 set -euo pipefail
+export MSPS_TEST_DATA=${MSPS_TEST_DATA:-../shared/data}  # the unseen-* presets read meshes/ and envmaps/ from it
 DATA=${1:-data}
 RUNS=${2:-runs}
 MINUTES=${3:-65}
@@ -101,7 +102,7 @@ E2="$RUNS/chroma-long/last.pt"
 [ -f "$RUNS/real-6e2/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-6e2" \
   --checkpoint 6e2="$E2"
 
-# 6. stage 7 (docs/reproducing.md "Stage 7"): object-level albedo-colour self-calibration (--selfcal, no training)
+# 6. stage 7 (docs/history.md "Stage 7"): object-level albedo-colour self-calibration (--selfcal, no training)
 #    for the shipped models, then 7a = 6d's run plus the Lambertian cue (net.lambert_cue); rule in runs/7a-decision.txt
 [ -f "$DATA/unseen-robust-env/dataset.json" ] || $MSPS render unseen-robust-env --out "$DATA/unseen-robust-env" --workers 2
 [ -f "$RUNS/report-selfcal/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --data "$DATA/unseen-test-grey" \
@@ -125,7 +126,7 @@ A7="$RUNS/lambert/last.pt"
   --out "$RUNS/eval-7a-unseen-robust-env"
 [ -f "$RUNS/blob-7a.txt" ] || $PY benchmarks/blob_check.py --model 7a="$A7" | tee "$RUNS/blob-7a.txt"
 
-# 7. stage 8 (docs/reproducing.md "Stage 8"): the Lambertian refinement (--refine, no training); thresholds chosen
+# 7. stage 8 (docs/history.md "Stage 8"): the Lambertian refinement (--refine, no training); thresholds chosen
 #    on whole-frame validation sets (procedural shapes, training materials), then every test set scored once
 for set in val-frames val-frames-grey val-frames-colour; do
   $MSPS render $set --out "$DATA/$set" --workers 2 $R
@@ -153,7 +154,7 @@ $MSPS train cpu --threads 2 --data "$DATA/train-colour-mixed" --data "$DATA/trai
   --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" \
   --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" --model 7b="$RUNS/lambert-gain/last.pt" --out "$RUNS/report-7b"
 
-# 8. stage 9 (docs/reproducing.md "Stage 9"): the self-calibration's one-albedo share chosen on the validation
+# 8. stage 9 (docs/history.md "Stage 9"): the self-calibration's one-albedo share chosen on the validation
 #    frames (rule in runs/9-decision.txt; the stage 8 reports above, re-run with this code, already include it),
 #    the bound on a local colour estimate, and the mirror ensemble (rule in runs/9b-decision.txt)
 [ -f "$RUNS/9-valsweep.json" ] || $PY benchmarks/selfcal_share_sweep.py --data "$DATA/val-frames" \
@@ -245,7 +246,7 @@ for m in 11d="$RUNS/albedo-lamb-v04/last.pt" 11dc="$RUNS/albedo-lamb-v04-control
     --model "$m" --out "$RUNS/report-11-$n"
 done
 
-# ---- stage 12 (docs/reproducing.md "Stage 12") ------------------------------------------------------------
+# ---- stage 12 (docs/history.md "Stage 12") ------------------------------------------------------------
 # 12a / 12b: stage 11d's recipe at a smaller tint dose (12a: share 0.10, 4,000 steps; 12b: share 0.25, 2,000 steps)
 for spec in s12a:0.10:4000 s12b:0.25:2000; do
   IFS=: read -r name share steps <<< "$spec"
@@ -259,9 +260,9 @@ done
 for m in 12a="$RUNS/s12a/last.pt" 12b="$RUNS/s12b/last.pt"; do
   evaluate_candidate "$m"
 done
-# 12a ships as v0.5 (the rule in docs/reproducing.md "Stage 12"): its claims, then the export
+# 12a ships as v0.5 (the rule in docs/history.md "Stage 12"): its claims, then the export
 [ -f "$RUNS/claims-12a.json" ] || $PY benchmarks/shipped_claims.py --model 12a="$RUNS/s12a/last.pt" --out "$RUNS/claims-12a.json"
-[ -f models/dualcue-cpu-v0.5.pt ] || $PY benchmarks/ship_model.py "$RUNS/s12a/last.pt" models/dualcue-cpu-v0.5.pt \
+[ -f "$RUNS/dualcue-cpu-v0.5.pt" ] || $PY benchmarks/ship_model.py "$RUNS/s12a/last.pt" "$RUNS/dualcue-cpu-v0.5.pt" \
   --init models/dualcue-cpu-v0.4.pt
 # the segment-wise self-calibration: its bound with the TRUE regions (test ground truth; chooses nothing),
 # thresholds on validation frames only, then the test sets
@@ -288,25 +289,25 @@ for m in v04=models/dualcue-cpu-v0.4.pt 12a="$RUNS/s12a/last.pt" 6a=models/dualc
   tests_and_diligent 12seg "$m" --selfcal --segments --refine
 done
 
-# ---- stage 13 (docs/reproducing.md "Stage 13") ------------------------------------------------------------
+# ---- stage 13 (docs/history.md "Stage 13") ------------------------------------------------------------
 # the colour read off the network's own normals (--netcal): settings on validation frames only, then the tests
 $MSPS render val-frames --out "$DATA/val-frames" --workers 2 --resume --quiet
 [ -f "$RUNS/netcal-sweep.json" ] || $PY benchmarks/netcal_sweep.py --data "$DATA/val-frames" \
   --data "$DATA/val-frames-grey" --data "$DATA/val-frames-colour" --data "$DATA/val-frames-texture" \
-  --model models/dualcue-cpu-v0.5.pt --out "$RUNS/netcal-sweep.json"
-for m in v05=models/dualcue-cpu-v0.5.pt v04=models/dualcue-cpu-v0.4.pt; do
+  --model models/dualcue-cpu.pt --out "$RUNS/netcal-sweep.json"
+for m in v05=models/dualcue-cpu.pt v04=models/dualcue-cpu-v0.4.pt; do
   tests_and_diligent 13 "$m" --selfcal --refine --netcal
 done
 [ -f "$RUNS/eval-13-env-v05/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
-  --netcal --checkpoint v05=models/dualcue-cpu-v0.5.pt --method lambertian --out "$RUNS/eval-13-env-v05"
+  --netcal --checkpoint v05=models/dualcue-cpu.pt --method lambertian --out "$RUNS/eval-13-env-v05"
 # 13a: v0.5 + 5,000 steps with grey objects under environment light in the diet
 $MSPS render train-grey-env --out "$DATA/train-grey-env" --workers 2 --resume --quiet
 $MSPS train cpu --threads 2 --data "$DATA/train-grey-30" --data "$DATA/blobs-48" --data "$DATA/train-grey-env" \
-  --val "$DATA/val" --init models/dualcue-cpu-v0.5.pt --out "$RUNS/s13a" $([ -f "$RUNS/s13a/last.pt" ] && echo --resume) \
+  --val "$DATA/val" --init models/dualcue-cpu.pt --out "$RUNS/s13a" $([ -f "$RUNS/s13a/last.pt" ] && echo --resume) \
   --set train.freeze_bn=true --set train.shuffle_window=0 --set train.cache=true --set train.albedo_aug=0.10 \
   --set train.albedo_aug_scope=lambertian --set train.max_minutes=90 --set train.max_steps=5000 --set train.lr=1e-4 \
   --set train.val_every=500 --set train.val_max_patches=1500
-# ... and the rule's measurements (docs/reproducing.md "Stage 13": recorded, not shipped)
+# ... and the rule's measurements (docs/history.md "Stage 13": recorded, not shipped)
 tests_and_diligent 13 13a="$RUNS/s13a/last.pt" --selfcal --refine --netcal
 $PY benchmarks/blob_check.py --model 13a="$RUNS/s13a/last.pt"
 [ -f "$RUNS/eval-13-env-13a/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \

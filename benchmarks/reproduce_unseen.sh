@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Train on corpora that teach real objects and test on objects training never saw
-# (docs/reproducing.md, "Unseen objects"). Resumable: rerun the same command after an
+# (docs/history.md, "Unseen objects"). Resumable: rerun the same command after an
 # interruption and every finished render, training step and evaluation is kept.
 # Run from the repository root with ../shared/data beside the checkout (test meshes, HDR map).
 # Usage: bash benchmarks/reproduce_unseen.sh [DATA_DIR] [RUN_DIR] [STEPS] [LONG_MINUTES]
 set -euo pipefail
+export MSPS_TEST_DATA=${MSPS_TEST_DATA:-../shared/data}  # the unseen-* presets read meshes/ and envmaps/ from it
 DATA=${1:-data}
 RUNS=${2:-runs}
 STEPS=${3:-5000}          # stage 1: equal-steps comparison of dual / SCN / PCN / dual-robust

@@ -1,6 +1,6 @@
 """Markdown table of MAE and fluctuation ratio alpha per condition from `msps eval` outputs.
 
-Used for docs/reproducing.md ("Robustness: darkroom vs robust training"):
+Used for docs/history.md ("Robustness: darkroom vs robust training"):
 
     python benchmarks/robust_table.py dual=runs/eval-unseen-robust-env-dual \
         dual-robust=runs/eval-unseen-robust-env-dual-robust lambertian=runs/eval-unseen-robust-env-lambertian

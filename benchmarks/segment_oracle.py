@@ -6,7 +6,7 @@ Not a method and it chooses nothing: the regions come from the frame's ground-tr
 3 decimals; regions >= 300 pixels), each gets the unit-norm fit of models/selfcal.py (unnormalised, so
 colour and brightness), pixels outside them the median factor; then the network and the refinement.
 How far the image-based segmentation (models/segments.py) is from what true regions would give
-(docs/reproducing.md "Stage 12").  Needs frames with ground-truth albedo (shards from v0.5 on).
+(docs/history.md "Stage 12").  Needs frames with ground-truth albedo (shards from v0.5 on).
 """
 from __future__ import annotations
 

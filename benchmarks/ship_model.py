@@ -1,6 +1,6 @@
 """Export a training run's checkpoint as a shipped model (models/README.md), light range widened by its --init's.
 
-    python benchmarks/ship_model.py runs/s12a/last.pt models/dualcue-cpu-v0.5.pt --init models/dualcue-cpu-v0.4.pt
+    python benchmarks/ship_model.py runs/s12a/last.pt models/dualcue-cpu.pt --init models/dualcue-cpu-v0.4.pt
 
 Why: a fine-tune records the light geometry of its own data only (before `train.start_run` merged the
 --init checkpoint's); the network has seen the init's range too, and `msps predict` warns outside it.

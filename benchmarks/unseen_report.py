@@ -1,4 +1,4 @@
-"""Per-object table and side-by-side normal maps on whole-frame test sets (docs/reproducing.md).
+"""Per-object table and side-by-side normal maps on whole-frame test sets (docs/history.md).
 
 For each test dataset (stored with whole frames) and each method — checkpoints
 given as NAME=PATH, plus the calibrated Lambertian baseline — predicts every

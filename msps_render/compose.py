@@ -42,6 +42,7 @@ class Capture:
     light_dirs: np.ndarray  # (N, 3) unit rows
     intensities: np.ndarray  # (N, 3)
     mask_path: Path | None
+    radiometric: bool = False  # light_intensities.txt given: untagged PNG photos are linear (`PNG_RULE`)
 
 
 def _read_rows(path: Path, what: str) -> np.ndarray:
@@ -95,7 +96,7 @@ def read_capture(root: str | Path) -> Capture:
     if len(images) != len(L):
         raise InputError(src, f"{len(images)} images but {len(L)} light directions in {ld.name}")
     mask = root / "mask.png"
-    return Capture(root, images, L, E, mask if mask.is_file() else None)
+    return Capture(root, images, L, E, mask if mask.is_file() else None, radiometric=li.is_file())
 
 
 def choose_lights(light_dirs: np.ndarray, slant_deg: float, tilts_deg) -> tuple[np.ndarray, np.ndarray]:
@@ -112,18 +113,18 @@ def choose_lights(light_dirs: np.ndarray, slant_deg: float, tilts_deg) -> tuple[
     return idx, ang[idx, np.arange(len(T))]
 
 
-def read_photo(path: Path, linear: bool | None = None, warn=None) -> np.ndarray:
+def read_photo(path: Path, linear: bool | None = None, warn=None, radiometric: bool = False) -> np.ndarray:
     """A capture image as linear float RGB (H, W, 3); alpha is dropped.  PNG follows the one rule of
-    `msps predict` and `msps compose` (`io.png16.PNG_RULE`: its tag, else 16-bit linear, 8-bit sRGB,
-    `warn(message)` hearing the guess; `linear` True/False forces it).  JPG/TIFF are decoded as
-    sRGB, EXR/HDR/NPY are linear."""
+    `msps predict`, `msps compose` and `msps bench-real` (`io.png16.PNG_RULE`: its tag, else linear in a
+    `radiometric` capture, else 16-bit linear, 8-bit sRGB, `warn(message)` hearing the guess; `linear`
+    True/False forces it).  JPG/TIFF are decoded as sRGB, EXR/HDR/NPY are linear."""
     from msps_render.io.png16 import read_png_linear
     from msps_render.io.images import read_image
 
     if not path.is_file():
         raise InputError(path, "image file not found")
     if path.suffix.lower() == ".png":
-        img = read_png_linear(path, linear, warn)
+        img = read_png_linear(path, linear, warn, radiometric)
     else:
         img = read_image(path).astype(np.float64)  # EXR/HDR/NPY linear; JPG/TIFF decoded as sRGB
     if img.ndim == 2:
@@ -211,7 +212,7 @@ def compose_arrays(cap: Capture, slant_deg: float = 30.0, tilts_deg=(0.0, 120.0,
 
     M = PAPER_CROSSTALK.copy() if crosstalk is None else np.asarray(crosstalk, np.float64)
     idx, dev = select_lights(cap, slant_deg, tilts_deg)
-    photos = [read_photo(cap.images[i], linear, warn) for i in idx]
+    photos = [read_photo(cap.images[i], linear, warn, cap.radiometric) for i in idx]
     H, W = photos[0].shape[:2]
     for i, p in zip(idx, photos):
         if p.shape[:2] != (H, W):

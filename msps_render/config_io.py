@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, Callable, TypeVar
 
 from pydantic import BaseModel, ConfigDict
@@ -97,11 +98,25 @@ def unknown_keys(data: Any, model: type[BaseModel], prefix: str = "") -> list[st
     return out
 
 
-def validate(model: type[M], data: dict, source: str | Path) -> M:
+def validate(model: type[M], data: dict, source: str | Path, overrides=(),
+             qualify: Callable[[str], str] = lambda k: k) -> M:
+    """`data` as `model`; a bad value is blamed on the `--set` among `overrides` that gave it, else on `source`."""
     unknown = unknown_keys(data, model)
     if unknown:
         raise InputError(source, "; ".join(unknown))
     try:
         return model.model_validate(data)
     except Exception as e:
-        raise InputError(source, format_validation_error(e)) from None
+        raise _blame(e, source, overrides, qualify) from None
+
+
+def _blame(err: Exception, source: str | Path, overrides, qualify: Callable[[str], str]) -> InputError:
+    """Why: `--set dataset.n_shards=abc` is a typo on the command line; naming the preset file sends the
+    user looking in the wrong place.  Errors outside every `--set` key stay the file's."""
+    errors = err.errors() if callable(getattr(err, "errors", None)) else []
+    for ov in overrides:
+        key = qualify(ov.split("=", 1)[0].strip())
+        mine = [e for e in errors if f"{'.'.join(map(str, e.get('loc', ())))}.".startswith(f"{key}.")]
+        if mine:
+            return InputError(f"--set {ov}", format_validation_error(SimpleNamespace(errors=lambda: mine)))
+    return InputError(source, format_validation_error(err))

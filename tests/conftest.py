@@ -14,7 +14,7 @@ def variant_or_skip(name: str) -> str:
     mi = pytest.importorskip("mitsuba")
     if name not in mi.variants():
         pytest.skip(f"Mitsuba variant {name} not built")
-    if name.startswith("llvm"):
+    if name.startswith(("llvm", "cuda")):
         from msps_render.render.variant import probe_variant
 
         ok, why = probe_variant(name)
@@ -26,9 +26,11 @@ def variant_or_skip(name: str) -> str:
 
 # One fixture per Mitsuba variant the tests use (as mitsuba3's own conftest does): the variant
 # is set for the test, or the test is skipped where it is missing or its LLVM is unusable.
+# MSPS_TEST_JIT=cuda runs the same physics tests with the CUDA variants (a GPU machine without libLLVM).
+_JIT = os.environ.get("MSPS_TEST_JIT", "llvm")
 VARIANT_FIXTURES = {
-    "rgb_variant": "llvm_ad_rgb",
-    "spectral_variant": "llvm_ad_spectral",
+    "rgb_variant": f"{_JIT}_ad_rgb",
+    "spectral_variant": f"{_JIT}_ad_spectral",
     "scalar_variant": "scalar_rgb",
 }
 
@@ -91,3 +93,5 @@ def shared_data() -> Path:
 
 def pytest_configure(config):
     os.environ.setdefault("MSPS_THREADS", "2")
+    if SHARED.is_dir():  # the unseen-* presets read their meshes and map from $MSPS_TEST_DATA
+        os.environ.setdefault("MSPS_TEST_DATA", str(SHARED))

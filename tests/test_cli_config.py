@@ -130,6 +130,25 @@ def test_show_bad_input_one_line_and_nothing_written(tmp_path):
     assert list(tmpdir.iterdir()) == []
 
 
+def test_bad_set_value_blames_the_set_not_the_file(tmp_path):
+    """A value given on the command line that fails validation names that --set (a bad value in the file
+    still names the file): the user looks where the mistake is."""
+    cfg_path = write(tmp_path, TINY)
+    line = one_line_error(cli("config", "show", cfg_path, "--set", "dataset.n_shards=abc"))
+    assert line.startswith("error: --set dataset.n_shards=abc: dataset.n_shards: Input should be a valid integer"), line
+    assert str(cfg_path) not in line
+    line = one_line_error(cli("render", "demo", "--out", tmp_path / "out", "--set", "lights.slant_deg=abc"))
+    assert "--set lights.slant_deg=abc: scene.lights.slant_deg:" in line and "demo.toml" not in line, line
+    assert not (tmp_path / "out").exists()
+    bad = write(tmp_path, TINY.replace("n_shards = 2", 'n_shards = "two"'), "bad.toml")
+    line = one_line_error(cli("config", "show", bad, "--set", "camera.width=48"))
+    assert "bad.toml: dataset.n_shards:" in line and "--set" not in line, line
+    from msps_render.errors import InputError
+    from msps_render.models.presets import load_model_config
+    with pytest.raises(InputError, match=r"^--set train\.lr=abc: train\.lr: Input should be a valid number"):
+        load_model_config("cpu", ["train.lr=abc"])  # the model presets follow the same rule
+
+
 # ------------------------------------------------------------------ estimates vs a real render
 @pytest.fixture(scope="module")
 def tiny_render(tmp_path_factory):

@@ -23,6 +23,17 @@ def test_version_and_short_help():
         assert r.exit_code == 0 and "Usage" in r.output, (cmd, r.output)
 
 
+def test_one_version_everywhere():
+    """The version is written twice (pyproject for the wheel's metadata, __version__ for `msps -V`):
+    they must agree."""
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    declared = tomllib.loads((root / "pyproject.toml").read_text())["project"]["version"]
+    assert declared == msps_render.__version__
+
+
 def test_help_texts_keep_brackets_and_say_how_png_is_read():
     r = runner.invoke(app, ["sample-scene", "-h"], terminal_width=200)
     assert "TOML with a [scene] table" in r.output  # rich markup used to swallow "[scene]"

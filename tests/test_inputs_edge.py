@@ -186,6 +186,37 @@ def test_png_rule_on_the_command_line(tmp_path):
         assert "--linear --srgb" in out and "gAMA 1.0" in out and "untagged 8-bit one as sRGB" in out, out
 
 
+def test_png_rule_in_a_capture_folder_is_the_same_for_compose_and_bench_real(tmp_path):
+    """Untagged 8-bit photos: linear where the folder gives light intensities (DiLiGenT layout; its 8-bit
+    crops hold the high byte of the raw capture), sRGB with a warning where it does not; `msps compose`
+    and `msps bench-real` compose the same folder to the same image."""
+    from PIL import Image
+
+    from msps_render.compose import compose_arrays, read_capture
+    from msps_render.io.png16 import encode_normal, write_png
+    from msps_render.models.realbench import load_real_object
+
+    L = [[np.sin(np.radians(30)) * np.cos(np.radians(t)), np.sin(np.radians(30)) * np.sin(np.radians(t)),
+          np.cos(np.radians(30))] for t in (0, 120, 240)]
+    d = tmp_path / "objPNG"
+    d.mkdir()
+    for k in range(3):
+        Image.fromarray(np.full((6, 6, 3), 128, np.uint8)).save(d / f"00{k + 1}.png")  # untagged 8-bit
+    np.savetxt(d / "light_directions.txt", L)
+    write_png(d / "mask.png", np.full((6, 6), 255, np.uint8))
+    n = np.zeros((6, 6, 3)); n[..., 2] = 1.0
+    write_png(d / "Normal_gt.png", encode_normal(n, np.ones((6, 6), bool)))
+    warns: list[str] = []
+    srgb = compose_arrays(read_capture(d), warn=warns.append).image  # no intensities: a picture, sRGB
+    assert srgb[0, 0, 0] == pytest.approx(SRGB128, rel=1e-5) and len(warns) == 3 and "8-bit" in warns[0]
+    np.savetxt(d / "light_intensities.txt", np.ones((3, 3)))
+    warns = []
+    lin = compose_arrays(read_capture(d), warn=warns.append).image  # radiometric capture: linear, no guess
+    assert lin[0, 0, 0] == pytest.approx(128 / 255, rel=1e-5) and warns == []
+    assert np.array_equal(load_real_object(d).image, lin.astype(np.float32))  # bench-real composes as compose
+    assert load_real_object(d, srgb=True).image[0, 0, 0] == pytest.approx(SRGB128, rel=1e-5)  # --srgb
+
+
 # ------------------------------------------------------------------ 5. export: parents, environment, sensor
 @pytest.fixture(scope="module")
 def env_dataset(tmp_path_factory):

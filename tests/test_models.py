@@ -308,7 +308,7 @@ def test_predict_and_eval_cli(tiny_dataset, tmp_path):
     assert rep["conditions"][""]["per_object"]
 
 
-# The blob test's claim (docs/reproducing.md, models/README.md) for models/dualcue-cpu.pt (v0.5): mean
+# The blob test's claim (docs/history.md, models/README.md) for models/dualcue-cpu.pt (v0.5): mean
 # MAE over its 3 frames, and the noise margin: the larger side of the 95 % frame-bootstrap interval
 # (`testing.frame_bootstrap`, printed by the test with -s). Measured on v0.5 (llvm_ad_rgb): 5.6891 deg,
 # frames 7.645 / 4.373 / 5.049, interval [4.373, 7.645], so +-1.96 (3 frames: wide, but what they

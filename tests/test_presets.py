@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from msps_render.errors import InputError
 from msps_render.pipeline.config import PRESET_DIR, load_config
 
 PRESETS = sorted(p.stem for p in Path(PRESET_DIR).glob("*.toml"))
@@ -33,7 +34,7 @@ def test_paper_presets_match_the_paper():
     assert load_config("paper-test").dataset.storage.store_frames
 
 
-TEST_MESH_DIR = "shared/data/meshes"
+TEST_MESH_DIR = "$MSPS_TEST_DATA/meshes"
 UNSEEN = ("unseen-test", "unseen-test-grey", "unseen-robust-env", "unseen-robust-slant",
           "unseen-test-colour", "unseen-test-texture", "unseen-test-smooth", "unseen-test-patches",
           "unseen-rig-crosstalk", "unseen-rig-jitter")
@@ -46,11 +47,37 @@ def test_no_training_or_validation_preset_sees_test_objects(name):
     """The test meshes and the held-out measured materials (brdf/split.toml) stay out of every
     corpus that is not an unseen-object test set; the test sets draw only held-out materials."""
     cfg = load_config(name)
-    assert not any(TEST_MESH_DIR in m for m in cfg.scene.shape.meshes)
+    assert not any("MSPS_TEST_DATA" in m or "shared/data" in m for m in cfg.scene.shape.meshes)
     # test sets of unseen shapes may draw the held-out materials; every other corpus must not
     assert cfg.scene.materials.holdout == ("test" if name == "paper-test" else "train")
     env = cfg.scene.environment
-    assert not (env.enabled and "shared/data/envmaps" in env.source)  # the real HDR map is test-only
+    assert not (env.enabled and ("MSPS_TEST_DATA" in env.source or "shared/data" in env.source))  # test-only map
+
+
+def test_unseen_presets_find_the_test_assets_from_one_setting(monkeypatch, tmp_path):
+    """The unseen-* presets name $MSPS_TEST_DATA/meshes/... (and envmaps/): unset, one line names the
+    variable and what to set it to; set, they work from any working directory."""
+    from msps_render.scene.envmap import load_envmap
+
+    cfg = load_config("unseen-robust-env")
+    monkeypatch.delenv("MSPS_TEST_DATA", raising=False)
+    with pytest.raises(InputError, match=r"^\$MSPS_TEST_DATA/meshes/ajc_spot\.obj: environment variable MSPS_TEST_DATA "
+                                         r"is not set .*export MSPS_TEST_DATA=FOLDER holding meshes/ and envmaps/"):
+        cfg.scene.shape.mesh_paths()
+    with pytest.raises(InputError, match=r"^\$MSPS_TEST_DATA/envmaps/venice_sunset_1k\.exr: environment variable"):
+        load_envmap(cfg.scene.environment.source)
+    monkeypatch.setenv("MSPS_TEST_DATA", str(tmp_path))
+    with pytest.raises(InputError, match=rf"^{tmp_path}/meshes/ajc_spot\.obj: no mesh file matches this path/pattern "
+                                         r"\(from '\$MSPS_TEST_DATA/meshes/ajc_spot\.obj' in the config\)"):
+        cfg.scene.shape.mesh_paths()
+    shared = Path(__file__).resolve().parents[2] / "shared" / "data"
+    if (shared / "meshes").is_dir():
+        monkeypatch.setenv("MSPS_TEST_DATA", str(shared))
+        monkeypatch.chdir(tmp_path)  # not the checkout: nothing is read relative to the working directory
+        assert [Path(p).name for p in cfg.scene.shape.mesh_paths()] == [
+            "ajc_spot.obj", "ajc_cow.obj", "ajc_teapot.obj", "ajc_suzanne.obj", "ajc_beetle.obj", "ajc_fandisk.obj",
+            "scivi_feline.obj"]
+        assert load_envmap(cfg.scene.environment.source).shape == (512, 1024, 3)
 
 
 @pytest.mark.parametrize("name", UNSEEN)

@@ -232,7 +232,7 @@ def test_diligent_numbers_reproduce(tmp_path):
 
 
 # `--netcal` with the shipped checkpoint (v0.5): the colour read off the network's normals, one round
-# (models/netcal.py; settings chosen on validation frames, docs/reproducing.md "Stage 13").  goblet: the
+# (models/netcal.py; settings chosen on validation frames, docs/history.md "Stage 13").  goblet: the
 # agreement gate refuses it (a metal's ratios spread), so it keeps the network's number.
 DILIGENT_NETCAL = {"ball": 4.53, "cat": 12.18, "pot1": 14.35, "goblet": 17.69}
 

@@ -137,7 +137,7 @@ def test_local_floor_keeps_dark_patches_in_their_own_region():
     """With the object-wide lit floor a patch whose darkest channel is below a tenth of the object's
     brightest loses its dim side to a neighbour's factor (4.76 deg mean on this sphere); a floor relative to
     each channel's maximum within 15 px keeps it (0.63 deg).  An option: on the validation frames it did not
-    beat the default (docs/reproducing.md "Stage 12")."""
+    beat the default (docs/history.md "Stage 12")."""
     n, mask = sphere(128)
     img = render(n, mask, quadrant_albedo(128))
     lit = unshadowed(n, L, mask)

@@ -1,12 +1,12 @@
 """The shipped checkpoint against its claimed numbers, measured from scratch in the test.
 
 The unseen-object test sets are rendered here from their presets (deterministic from the preset
-seeds: the same 2 x 28 frames as `msps render unseen-test[-grey]`, docs/reproducing.md) and
+seeds: the same 2 x 28 frames as `msps render unseen-test[-grey]`, docs/history.md) and
 predicted with the shipped model and the calibrated Lambertian baseline, pixel-pooled over whole
 frames as `benchmarks/unseen_report.py` does. Needs the test meshes in ../shared/data (skips
 without them).
 
-What is checked is the claim (README, models/README.md, docs/reproducing.md), not only the
+What is checked is the claim (README, models/README.md, docs/history.md), not only the
 issue-9 target (<= 0.7x / <= 1x): the measured ratio shipped / Lambertian must lie within the
 margin of the claimed one, on both sides -- a worse model fails, and so does a better one whose
 claim was not updated. Replacing models/dualcue-cpu.pt: re-run with `-s`, which prints the ratio
@@ -67,7 +67,7 @@ def test_shipped_model_meets_its_claims_on_unseen_objects(preset, claim, margin,
     from msps_render.pipeline.run import render_dataset
     from msps_render.testing import frame_bootstrap
 
-    monkeypatch.chdir(ROOT)  # the presets name the meshes as ../shared/data/meshes/..., from the checkout
+    monkeypatch.setenv("MSPS_TEST_DATA", str(shared_data))  # where the unseen-* presets read their meshes
     cfg = load_config(preset)
     render_dataset(cfg, tmp_path / preset, progress=False, variant=rgb_variant)
     net, base, count = _per_frame_errors(tmp_path / preset, load_checkpoint(default_checkpoint())[0])
@@ -80,7 +80,7 @@ def test_shipped_model_meets_its_claims_on_unseen_objects(preset, claim, margin,
     assert abs(ratio - claim) <= margin, f"{preset}: measured {ratio:.3f}, claimed {claim} +- {margin}"
 
 
-# Claims of stages 8-9 (docs/reproducing.md): the shipped model after --selfcal --refine, pooled-MAE ratio to
+# Claims of stages 8-9 (docs/history.md): the shipped model after --selfcal --refine, pooled-MAE ratio to
 # calibrated Lambertian PS on the raw image, with the larger side of the 95 % frame-bootstrap interval
 # (measured on v0.5 from the stored renders by benchmarks/shipped_claims.py: grey 0.6603 [0.5577, 0.7699]
 # (5.61 vs 8.50 deg); colour 0.1753 [0.1311, 0.2341] (6.30 vs 35.92 deg); v0.4: 0.6551 [0.5552, 0.7625],
@@ -111,7 +111,7 @@ def test_shipped_model_with_selfcal_and_refine_meets_its_claims(preset, claim, m
     from msps_render.pipeline.run import render_dataset
     from msps_render.testing import frame_bootstrap
 
-    monkeypatch.chdir(ROOT)
+    monkeypatch.setenv("MSPS_TEST_DATA", str(shared_data))
     render_dataset(load_config(preset), tmp_path / preset, progress=False, variant=rgb_variant)
     model = load_checkpoint(default_checkpoint())[0]
     net, base = [], []

@@ -37,7 +37,7 @@ def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAM
               init: Optional[Path] = typer.Option(None, help="warm start: weights of this checkpoint "
                                                   "(same network), fresh optimizer and schedule"),
               set_: List[str] = typer.Option([], "--set", help="override, e.g. train.max_minutes=10"),
-              device: str = typer.Option("cpu", help="cpu or cuda"),
+              device: str = typer.Option("auto", help="auto (CUDA when usable, else CPU), cpu or cuda"),
               threads: Optional[int] = typer.Option(None, help="torch CPU threads")):
     """Train the dual-cue network (or an ablation: --set net.mode=scn|pcn)."""
     import torch
@@ -160,8 +160,7 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
                    skip: List[str] = typer.Option([], help="leave out a capture before the nearest three are "
                                                   "chosen: FILE (e.g. 001.png, in every folder) or "
                                                   "OBJECT/FILE (one folder); repeatable"),
-                   srgb: bool = typer.Option(False, "--srgb", help="PNG photos are sRGB-encoded (default: "
-                                             "linear, as raw captures)"),
+                   srgb: bool = typer.Option(False, "--srgb", help=f"PNG photos are sRGB-encoded. Default: {PNG_RULE}"),
                    threads: Optional[int] = typer.Option(None, help="torch CPU threads"),
                    selfcal: bool = ALSO_SELFCAL,
                    refine: bool = ALSO_REFINE,

@@ -34,7 +34,11 @@ def open_shard(path: str | Path, mode: str = "r", chunk_cache: bool = True):
     into the caller's array instead of through its chunk cache (~10% less CPU per shard).
     """
     import h5py
-    import hdf5plugin  # noqa: F401 - registers the zstd / Blosc2 filters a shard may use
+
+    try:  # registers the zstd / Blosc2 filters a shard may use; lzf/gzip shards read without it
+        import hdf5plugin  # noqa: F401  (an offline GPU node may lack it: scripts/build_wheelhouse.py)
+    except ImportError:
+        pass
 
     return h5py.File(path, mode) if chunk_cache else h5py.File(path, mode, rdcc_nbytes=0)
 

@@ -5,7 +5,7 @@ the writer here encodes PNG itself (zlib, filter 0; lossless, deterministic)
 and the reader uses Mitsuba's `Bitmap` (libpng), which returns the stored
 integers.  Values are written as stored, with a gAMA 1.0 chunk that says so
 (the PNG way of marking linear data).  `read_png_linear` is the one rule by which
-`msps predict` and `msps compose` turn a PNG into linear values (`PNG_RULE`).
+`msps predict`, `msps compose` and `msps bench-real` turn a PNG into linear values (`PNG_RULE`).
 """
 from __future__ import annotations
 
@@ -20,8 +20,10 @@ from msps_render.errors import InputError
 _SIG = b"\x89PNG\r\n\x1a\n"
 LINEAR_GAMMA = 100000  # gAMA chunk value of file gamma 1.0 (the PNG spec stores gamma x 100000)
 PNG_RULE = ("PNG values are decoded as the file says: a gAMA 1.0 chunk (msps's own PNGs) means linear, an sRGB/"
-            "iCCP chunk or another gamma means sRGB; an untagged 16-bit PNG is taken as linear (raw captures), "
-            "an untagged 8-bit one as sRGB, each with a warning; --linear / --srgb override")
+            "iCCP chunk or another gamma means sRGB; an untagged photo of a capture folder with "
+            "light_intensities.txt (DiLiGenT layout: radiometric, so linear) is linear at any bit depth; any other "
+            "untagged 16-bit PNG is taken as linear (raw captures), an untagged 8-bit one as sRGB, each with a "
+            "warning; --linear / --srgb override")
 
 
 def _chunk(kind: bytes, data: bytes) -> bytes:
@@ -124,11 +126,15 @@ def png_colour_tags(path: str | Path) -> dict:
     return tags
 
 
-def png_is_linear(path: str | Path, bit_depth: int, linear: bool | None = None) -> tuple[bool, str | None]:
+def png_is_linear(path: str | Path, bit_depth: int, linear: bool | None = None,
+                  radiometric: bool = False) -> tuple[bool, str | None]:
     """(values are linear, warning or None when guessed): the rule of `PNG_RULE`.
 
     Why tags first: msps writes gAMA 1.0 into its PNGs, so its own 16-bit exports read back
-    linear without a flag; untagged files fall back on what their bit depth usually means."""
+    linear without a flag; untagged files fall back on what they are.  `radiometric`: a photo of a
+    capture that gives its lights' intensities (DiLiGenT layout), whose values are divided by them, so
+    they are linear whatever the bit depth (DiLiGenT's 8-bit crops hold the high byte of the 16-bit raw
+    capture); no warning, the layout says so."""
     if linear is not None:
         return bool(linear), None
     t = png_colour_tags(path)
@@ -136,6 +142,8 @@ def png_is_linear(path: str | Path, bit_depth: int, linear: bool | None = None) 
         return False, None
     if t["gamma"] is not None:
         return abs(t["gamma"] - 1.0) < 0.01, None
+    if radiometric:
+        return True, None
     if bit_depth == 16:
         return True, (f"{path}: 16-bit PNG without colour information, read as linear (raw capture); "
                       f"pass --srgb if it is gamma-encoded")
@@ -147,13 +155,13 @@ def srgb_to_linear(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
 
 
-def read_png_linear(path: str | Path, linear: bool | None = None, warn=None) -> np.ndarray:
+def read_png_linear(path: str | Path, linear: bool | None = None, warn=None, radiometric: bool = False) -> np.ndarray:
     """A PNG as linear float64 in [0, 1], (H, W) or (H, W, C) (alpha kept, never decoded).
 
     `linear` True/False forces the decoding (--linear / --srgb); None follows `png_is_linear`, and
     `warn(message)` hears when that is a guess."""
     a = read_png(path)
-    is_linear, guess = png_is_linear(path, 16 if a.dtype == np.uint16 else 8, linear)
+    is_linear, guess = png_is_linear(path, 16 if a.dtype == np.uint16 else 8, linear, radiometric)
     if guess and warn:
         warn(guess)
     img = from_unorm(a)

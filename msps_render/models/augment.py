@@ -1,7 +1,7 @@
 """Albedo augmentation: a seeded colour field multiplied into training patches (`train.albedo_aug`).
 
 Why: the error that is left on coloured objects is the albedo colour varying across the surface
-(docs/reproducing.md, stage 9's chroma bound), and a rendered corpus holds only as many colour
+(docs/history.md, stage 9's chroma bound), and a rendered corpus holds only as many colour
 layouts as it has frames.  In RGB mode channel c of a pixel records
 
     x_c = rho_c * (sum_k M_ck s_k(n) + environment_c(n)),

@@ -69,4 +69,4 @@ def total_loss(final: torch.Tensor, coarse: torch.Tensor | None, gt: torch.Tenso
         parts["scn"] = scn_loss(coarse, gt, mask)
     if mode in ("dual", "pcn"):
         parts["pcn"] = pcn_loss(final, gt, mask)
-    return sum(parts.values()), {k: float(v.detach()) for k, v in parts.items()}
+    return sum(parts.values()), {k: v.detach() for k, v in parts.items()}  # tensors: reading one waits for a GPU

@@ -1,4 +1,4 @@
-"""The dual-cue network: n_est = PCN(c, SCN(c))  (Ju et al. 2020; docs/reproducing.md).
+"""The dual-cue network: n_est = PCN(c, SCN(c))  (Ju et al. 2020; docs/history.md).
 
 SCN (structural cue): the R, G, B channels go through separate conv branches
 (spectral-division multiplexing), an Interleaved Group Convolution block mixes
@@ -165,7 +165,7 @@ def lambertian_cue(image: torch.Tensor, mask: torch.Tensor, rig: torch.Tensor) -
     Why: on a uniform-albedo Lambertian pixel lit by all three lights b is rho * n exactly, so the
     normal is the answer and the log term is 0; shadows, highlights, interreflections and albedo
     changes show up as a log term away from 0.  The network learns where to trust it -- a fusion
-    of the physics and the learned cues (docs/reproducing.md "stage 7")."""
+    of the physics and the learned cues (docs/history.md "stage 7")."""
     if rig.ndim == 2:
         rig = rig.expand(image.shape[0], 3, 3)
     b = torch.einsum("bij,bjhw->bihw", torch.linalg.inv(rig.to(image.dtype)), image)

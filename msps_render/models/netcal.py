@@ -18,7 +18,7 @@ clear of the dark floor are used; the median ignores highlights and cast shadows
 The loop needs whole images (one colour per object, from the whole object's pixels).  Its settings
 were chosen on validation frames only (procedural shapes, training materials: `val-frames`,
 `val-frames-grey`, `-colour`, `-texture`), never on a test set or a real capture
-(docs/reproducing.md "Stage 13").
+(docs/history.md "Stage 13").
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ DESCRIPTION = "after the albedo colour read off its own normals, predicted again
 
 @dataclass(frozen=True)
 class NetcalSettings:
-    """Chosen on the validation frames by benchmarks/netcal_sweep.py (docs/reproducing.md "Stage 13"): the lowest
+    """Chosen on the validation frames by benchmarks/netcal_sweep.py (docs/history.md "Stage 13"): the lowest
     mean over val-frames, -grey, -colour and -texture with no set worse than +0.10 deg (runs/13-decision.txt).
     More rounds diverge on objects of several colours; the agreement gate keeps the loop off them."""
 
@@ -75,7 +75,7 @@ def chroma_agreement(ratios: np.ndarray, tol: float) -> float:
     """Share of pixels whose log chroma (log ratio minus its mean over channels: brightness left out)
     lies within `tol` (max over channels) of the median chroma.  Why: one colour per object is the
     model; an object of several coloured materials spreads its ratios, and the loop then diverges
-    (measured on val-frames, docs/reproducing.md "Stage 13")."""
+    (measured on val-frames, docs/history.md "Stage 13")."""
     if len(ratios) == 0:
         return 0.0
     lr = np.log(np.maximum(ratios, 1e-12))

@@ -19,15 +19,15 @@ class NetSection(StrictModel):
     pcn: tuple[int, ...] = Field((64, 64, 32, 32), description="PCN per-pixel layer widths after the merge")
     mode: Literal["dual", "scn", "pcn"] = Field("dual", description="both cues (dual) or one network alone")
     chroma_cue: bool = Field(False, description="also feed each colour channel divided by its own patch mean "
-                                                "(an albedo-colour-invariant cue; docs/reproducing.md stage 6e)")
+                                                "(an albedo-colour-invariant cue; docs/history.md stage 6e)")
     lambert_cue: bool = Field(False, description="also feed the PCN the calibrated Lambertian normal and its "
                                                  "length residual per pixel (the net then needs the rig: "
-                                                 "light directions and crosstalk; docs/reproducing.md stage 7)")
+                                                 "light directions and crosstalk; docs/history.md stage 7)")
     lambert_scn: bool = Field(False, description="feed the same Lambertian cue to the SCN's U-Net as well "
                                                  "(beside the colour branches' features; needs the rig)")
     cue_gain: float = Field(1.0, gt=0, description="multiplies the Lambertian cue: warm-started at zero weight "
                                                    "under Adam, its weights then move this many times faster "
-                                                   "(docs/reproducing.md stage 7b)")
+                                                   "(docs/history.md stage 7b)")
 
 
 class TrainSection(StrictModel):
@@ -43,6 +43,11 @@ class TrainSection(StrictModel):
                                                   "after max_minutes/20 without one)")
     val_max_patches: int = Field(2000, ge=1, description="validation patches per check")
     seed: int = Field(0, description="seed of initialisation and data order")
+    precision: Literal["auto", "fp32", "bf16"] = Field(
+        "auto", description="arithmetic of the forward pass: auto = bf16 autocast on a CUDA device, float32 on "
+                            "the CPU (bf16 needs no loss scaler; docs/scaling.md \"Running on a GPU\")")
+    channels_last: bool | Literal["auto"] = Field("auto", description="NHWC memory format for the convolutions "
+                                                                      "(auto: on a CUDA device)")
     num_workers: int = Field(0, ge=0, description="DataLoader worker processes")
     cache: bool | Literal["auto"] = Field("auto", description="keep the decoded training corpus in memory "
                                                               "(auto: when it takes <= 40 % of available memory)")
@@ -51,10 +56,10 @@ class TrainSection(StrictModel):
                                                      "decoded cache: meant with `cache`). With windows a batch "
                                                      "holds 1-2 shards and ~100 batches in a row come from 4: "
                                                      "with several corpora, validation swings between them "
-                                                     "(docs/reproducing.md, stage 4)")
+                                                     "(docs/history.md, stage 4)")
     freeze_bn: bool = Field(False, description="keep BatchNorm layers in inference mode while training: their "
                                                "statistics stay those of the --init model and only weights "
-                                               "learn (fine-tuning on a new corpus mix; docs/reproducing.md)")
+                                               "learn (fine-tuning on a new corpus mix; docs/history.md)")
     mirror_aug: float = Field(0.0, ge=0, le=1, description="share of each batch replaced by its exact mirror "
                                                           "image (rows reversed, channels 1 and 2 swapped, the "
                                                           "rig mirrored with it; models/symmetry.py): a "
@@ -67,7 +72,7 @@ class TrainSection(StrictModel):
         "all", description="which patches `albedo_aug` may tint: all, or only those of frames whose image is "
                            "linear in the albedo (every material Lambertian, RGB mode, no camera response), "
                            "where the tint is physical too -- a tinted measured or glossy material gets a "
-                           "coloured highlight, which dielectrics never have (docs/reproducing.md, stage 11)")
+                           "coloured highlight, which dielectrics never have (docs/history.md, stage 11)")
 
 
 class ModelConfig(StrictModel):
@@ -91,4 +96,4 @@ def load_model_config(path_or_name: str | Path, overrides: list[str] = ()) -> Mo
         raise InputError(Path(path_or_name), f"model config not found{closest(str(path_or_name), known)} "
                                              f"(presets: {', '.join(known)})")
     check_override_keys(overrides, ModelConfig)  # a typo in --set is blamed on --set, not the preset file
-    return validate(ModelConfig, apply_overrides(read_toml(p, "model config"), overrides), p)
+    return validate(ModelConfig, apply_overrides(read_toml(p, "model config"), overrides), p, overrides)

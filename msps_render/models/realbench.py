@@ -193,7 +193,7 @@ def load_real_object(folder: str | Path, slant_deg: float = 30.0, tilts_deg=(0.0
         if not p.is_file():
             where = "listed in filenames.txt" if (cap.root / "filenames.txt").is_file() else "image"
             raise InputError(p, f"image file not found ({where})")
-    comp = compose_arrays(cap, slant_deg, tilts_deg, M, linear=not srgb)  # DiLiGenT layout: linear unless --srgb
+    comp = compose_arrays(cap, slant_deg, tilts_deg, M, linear=False if srgb else None)  # PNG_RULE unless --srgb
     gt, src = read_normal_gt(cap.root, comp.mask.shape)
     return RealObject(name=name or object_name(cap.root), root=cap.root, image=comp.image.astype(np.float32),
                       mask=comp.mask, normal_gt=gt, light_dirs=comp.light_dirs, crosstalk=M,

@@ -21,7 +21,7 @@ decides and the closed form refines:
 * everything else: the network.
 The thresholds were chosen on the whole-frame validation sets (`val-frames`,
 `val-frames-grey`, `val-frames-colour`: procedural shapes, training materials),
-never on a test set (docs/reproducing.md "Stage 8").
+never on a test set (docs/history.md "Stage 8").
 """
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ DESCRIPTION = "refined by the Lambertian closed form where the image agrees with
 
 @dataclass(frozen=True)
 class RefineSettings:
-    """Chosen on the validation frames by the rule in docs/reproducing.md "Stage 8" (grid: floor 0.05/0.1/0.2,
+    """Chosen on the validation frames by the rule in docs/history.md "Stage 8" (grid: floor 0.05/0.1/0.2,
     tolerance 0.05/0.1/0.2, agreement 15/30/45 deg, share 0.7-0.95); 45 deg is the grid's edge."""
 
     shadow_floor: float = 0.05  # a light reaches a pixel when its shading exceeds this share of its 99th percentile

@@ -15,7 +15,7 @@ A region is used only when the fit holds there: enough lit pixels, a positive fa
 in small or refused regions take the factor of the nearest accepted region.  Only objects the
 object-level fit leaves alone and that grey does not already explain are touched (grey, uniform
 colour: unchanged).  Thresholds chosen on `val-frames-texture` / `-grey` / `-colour` (procedural
-shapes), never on a test set (docs/reproducing.md "Stage 12").
+shapes), never on a test set (docs/history.md "Stage 12").
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ DESCRIPTION = "after the object-level and the segment-wise albedo self-calibrati
 
 @dataclass(frozen=True)
 class SegmentSettings:
-    """Chosen on the validation frames by benchmarks/segment_sweep.py (docs/reproducing.md "Stage 12"):
+    """Chosen on the validation frames by benchmarks/segment_sweep.py (docs/history.md "Stage 12"):
     the lowest val-frames-texture error with val-frames-grey and -colour no worse than +0.10 deg."""
 
     edge: float = 0.06  # |grad log c| (max over channels, per pixel) above this: a colour edge
@@ -68,7 +68,7 @@ def colour_regions(image: np.ndarray, mask: np.ndarray, settings: SegmentSetting
 
     Only lit pixels (every channel above `rel_floor` of its 99th percentile over the object) make
     regions: a shadow would otherwise join two patches of different colour (floored logs are flat
-    there; measured on validation: 16.34 vs 15.66 deg, docs/reproducing.md "Stage 12").  The price:
+    there; measured on validation: 16.34 vs 15.66 deg, docs/history.md "Stage 12").  The price:
     a patch whose darkest channel falls below the floor loses its dim side to its neighbours' factor."""
     from scipy import ndimage
 

@@ -16,9 +16,9 @@ A second condition guards objects of several materials, where one material can f
 while the others are ignored (a channel's factor driven towards 0): at least `MIN_SHARE`
 of the lit pixels must have one albedo after the factor (|b| within `SHARE_TOL`, log, of
 the median -- the refinement's one-albedo test; chosen on validation frames,
-docs/reproducing.md "Stage 9").  And the grey hypothesis goes first: when the pixels already
+docs/history.md "Stage 9").  And the grey hypothesis goes first: when the pixels already
 pass that test with no factor, grey explains the object and a colour fit would be fitting
-interreflections in its creases (docs/reproducing.md "Stage 10").
+interreflections in its creases (docs/history.md "Stage 10").
 The scale is normalised to mean 1, so the image keeps its exposure.
 """
 from __future__ import annotations
@@ -32,7 +32,7 @@ REL_FLOOR = 0.1  # a pixel is used when every channel exceeds this fraction of t
 MIN_PIXELS = 200
 ACCEPT = 0.7  # colour residual / grey residual below this -> rescale
 SHARE_TOL = 0.1  # |log(|b| / median |b|)| below this after the factor: a pixel has the fitted albedo
-MIN_SHARE = 0.9  # share of lit pixels with the fitted albedo needed to rescale (docs/reproducing.md "Stage 9")
+MIN_SHARE = 0.9  # share of lit pixels with the fitted albedo needed to rescale (docs/history.md "Stage 9")
 
 
 @dataclass(frozen=True)

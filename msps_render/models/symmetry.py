@@ -8,7 +8,7 @@ exactly what the rig would record of the mirrored object with its albedo channel
     c = diag(rho) M L n,   L S = Pi L,   M Pi = Pi M   =>   Pi^T c = diag(Pi^T rho) M L (S n)
 
 (S the mirror, Pi the permutation).  The network was not trained to be equivariant under this,
-so the two predictions err differently and their mean is better (measured: docs/reproducing.md
+so the two predictions err differently and their mean is better (measured: docs/history.md
 "Stage 9").  Only exact symmetries are used (no resampling): a rig without one is refused.
 """
 from __future__ import annotations

@@ -33,6 +33,7 @@ import torch
 from msps_render.atomic import AppendLog, save_figure, write_text
 from msps_render.dataset import read_manifest, training_lights
 from msps_render.errors import InputError, not_a_dataset
+from msps_render.models.accel import CPU, Accel, resolve_accel
 from msps_render.models.checkpoint import load_checkpoint, save_checkpoint
 from msps_render.models.losses import total_loss
 from msps_render.models.metrics import angular_error
@@ -57,22 +58,24 @@ def _sha1(path: str | Path) -> str:
 
 
 @torch.no_grad()
-def validate(model, loader, max_patches: int) -> float:
+def validate(model, loader, max_patches: int, accel: Accel = CPU) -> float:
     """Mean angular error (degrees) over object pixels of up to `max_patches` patches."""
     was = {m: m.training for m in model.modules()}  # restored per module (frozen BatchNorm stays frozen)
     model.eval()
     err_sum, n_pix, seen = 0.0, 0.0, 0
     for b in loader:
-        pred, _ = model(b["image"], b["mask"], batch_rig(b))
-        e = torch.rad2deg(angular_error(pred, b["normal"])) * b["mask"]
-        err_sum += float(e.sum())
-        n_pix += float(b["mask"].sum())
+        b = accel.batch(b)
+        with accel.autocast():
+            pred, _ = model(b["image"], b["mask"], batch_rig(b))
+        e = torch.rad2deg(angular_error(pred.float(), b["normal"])) * b["mask"]
+        err_sum += e.sum()
+        n_pix += b["mask"].sum()
         seen += len(b["image"])
         if seen >= max_patches:
             break
     for m, mode in was.items():
         m.train(mode)
-    return err_sum / max(n_pix, 1.0)
+    return float(err_sum) / max(float(n_pix), 1.0)
 
 
 def lr_factor(cfg: ModelConfig, progress: float) -> float:
@@ -116,15 +119,16 @@ class Run:
             "val_mae_deg": val_mae, "train_lights": self.train_lights})
 
 
-def build_model(cfg: ModelConfig, device: str) -> tuple[torch.nn.Module, torch.optim.Optimizer]:
-    """The network (seeded by `train.seed`) and its Adam optimizer."""
+def build_model(cfg: ModelConfig, accel: Accel = CPU) -> tuple[torch.nn.Module, torch.optim.Optimizer]:
+    """The network (seeded by `train.seed`, initialised on the CPU so every device starts from the same
+    weights) and its Adam optimizer."""
     torch.manual_seed(cfg.train.seed)
-    model = DualCueNet(cfg.net_config()).to(device)
+    model = accel.model(DualCueNet(cfg.net_config()))
     return model, torch.optim.Adam(model.parameters(), lr=cfg.train.lr, betas=tuple(cfg.train.betas))
 
 
 # Settings that change how batches are read, never which: a run may resume with other values.
-_READING_ONLY = {"num_workers", "cache"}
+_READING_ONLY = {"num_workers", "cache", "channels_last"}
 
 
 def _results_config(cfg: ModelConfig) -> dict:
@@ -220,23 +224,25 @@ def augment(train_cfg, batch: dict, step: int) -> dict:
     return batch
 
 
-def train_step(run: Run, batch: dict, device: str) -> tuple[torch.Tensor, dict]:
-    """One optimizer step on one batch: (loss, loss parts)."""
-    batch = augment(run.cfg.train, batch, run.state["step"])
-    x, n, m = batch["image"].to(device), batch["normal"].to(device), batch["mask"].to(device)
-    final, coarse = run.model(x, m, batch_rig(batch).to(device))
-    loss, parts = total_loss(final, coarse, n, m, run.cfg.net.mode)
+def train_step(run: Run, batch: dict, accel: Accel = CPU) -> tuple[torch.Tensor, dict]:
+    """One optimizer step on one batch: (loss, loss parts), left on the device (reading them waits
+    for the GPU, so `fit` does that only when it records)."""
+    batch = accel.batch(augment(run.cfg.train, batch, run.state["step"]))
+    with accel.autocast():
+        final, coarse = run.model(batch["image"], batch["mask"], batch_rig(batch))
+    loss, parts = total_loss(final.float(), None if coarse is None else coarse.float(), batch["normal"],
+                             batch["mask"], run.cfg.net.mode)
     run.opt.zero_grad(set_to_none=True)
     loss.backward()
     run.opt.step()
     return loss, parts
 
 
-def record(run: Run, log, val_mae: float, losses: list[float], parts: dict, lr: float, rate: float) -> None:
+def record(run: Run, log, val_mae: float, losses: list, parts: dict, lr: float, rate: float) -> None:
     """One metrics line; `best.pt` when validation improved; `last.pt` always."""
     s = run.state
-    rec = {"step": s["step"], "epoch": s["epoch"], "loss": float(np.mean(losses)),
-           **{f"loss_{k}": val for k, val in parts.items()}, "lr": lr,
+    rec = {"step": s["step"], "epoch": s["epoch"], "loss": float(torch.stack(losses).float().mean()),
+           **{f"loss_{k}": float(val) for k, val in parts.items()}, "lr": lr,
            "val_mae_deg": val_mae, "patches_per_s": rate, "elapsed_s": run.elapsed()}
     log.write(json.dumps(rec) + "\n")
     log.flush()
@@ -309,7 +315,7 @@ class ValCadence:
         self.val_s, self.last_t = now - started, now
 
 
-def fit(run: Run, loader, val_loader, log, bar, device: str) -> None:
+def fit(run: Run, loader, val_loader, log, bar, accel: Accel = CPU) -> None:
     """Epochs of `train_step` until the step or time budget; validate + `record` when `ValCadence` says."""
     t_cfg, state = run.cfg.train, run.state
     set_train_mode(run.model, t_cfg.freeze_bn)
@@ -323,20 +329,22 @@ def fit(run: Run, loader, val_loader, log, bar, device: str) -> None:
                 continue
             lr = t_cfg.lr * lr_factor(run.cfg, run.progress())
             set_lr(run.opt, lr)
-            loss, parts = train_step(run, b, device)
+            loss, parts = train_step(run, b, accel)
             state["step"] += 1
             state["batch_in_epoch"] = i + 1
             window_n += len(b["image"])
-            run_loss.append(float(loss.detach()))
+            run_loss.append(loss.detach())
             if bar:
                 bar.update(1)
-                bar.set_postfix(loss=f"{np.mean(run_loss[-50:]):.4f}", epoch=state["epoch"])
             stop = run.should_stop()
             if stop or cadence.due(state["step"], time.perf_counter()):
                 t0 = time.perf_counter()
-                v = validate(run.model, val_loader, t_cfg.val_max_patches)
+                v = validate(run.model, val_loader, t_cfg.val_max_patches, accel)
                 record(run, log, v, run_loss, parts, lr, window_n / (t0 - window_t))
                 cadence.done(t0, time.perf_counter())
+                if bar:
+                    bar.set_postfix(loss=f"{float(torch.stack(run_loss[-50:]).mean()) if run_loss else 0:.4f}",
+                                    val=f"{v:.2f}deg", best=f"{state['best_val']:.2f}deg", epoch=state["epoch"])
                 window_t, window_n, run_loss = time.perf_counter(), 0, []
             if stop:
                 done = True
@@ -347,7 +355,7 @@ def fit(run: Run, loader, val_loader, log, bar, device: str) -> None:
 
 
 def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | Path, out: str | Path,
-          resume: bool = False, device: str = "cpu", progress: bool = True, verify: bool = True,
+          resume: bool = False, device: str = "auto", progress: bool = True, verify: bool = True,
           init: str | Path | None = None) -> dict:
     """Train from scratch, continue a run (`resume`), or warm-start from another run's weights.
 
@@ -359,8 +367,9 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
     out, t_cfg = Path(out), cfg.train
     if t_cfg.freeze_bn and init is None and not resume:  # before reading (maybe caching) any data
         raise InputError("train.freeze_bn", "needs --init: a new network has no BatchNorm statistics to keep")
+    accel = resolve_accel(device, t_cfg.precision, t_cfg.channels_last)
     train_ds, val_ds = open_data(data, val, verify, t_cfg.cache)
-    model, opt = build_model(cfg, device)
+    model, opt = build_model(cfg, accel)
     run = Run(cfg, out, model, opt, data_hash(data), train_lights=training_lights(data))
     start_run(run, resume, init)
     out.mkdir(parents=True, exist_ok=True)
@@ -379,7 +388,7 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
 
             bar = tqdm(total=t_cfg.max_steps, initial=run.state["step"], unit="step", dynamic_ncols=True)
         try:
-            fit(run, loader, val_loader, log, bar, device)
+            fit(run, loader, val_loader, log, bar, accel)
             run.checkpoint("last.pt")
         finally:
             if bar:  # closed before an error's line is printed, not after it

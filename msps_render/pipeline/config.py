@@ -145,17 +145,17 @@ def load_config(path_or_name: str | Path, overrides: list[str] | tuple[str, ...]
     p = resolve_preset(path_or_name)
     check_override_keys(overrides, DatasetConfig, _qualify, legacy_scene_sensor)  # blame --set, not the file
     data = apply_overrides(read_toml(p), overrides, _qualify)
-    cfg = validate_config(data, str(p))
+    cfg = validate_config(data, str(p), overrides)
     cfg._source = str(p)
     return cfg
 
 
-def validate_config(data: dict, source: str = "<config>") -> DatasetConfig:
+def validate_config(data: dict, source: str = "<config>", overrides=()) -> DatasetConfig:
     try:  # before the unknown-key check, which does not know the old spelling
         data = legacy_scene_sensor(data)
     except ValueError as e:
         raise InputError(source, str(e)) from None
-    return validate(DatasetConfig, data, source)
+    return validate(DatasetConfig, data, source, overrides, _qualify)
 
 
 def config_json(cfg: DatasetConfig) -> str:

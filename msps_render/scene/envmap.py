@@ -6,6 +6,8 @@ map fails before any rendering starts.
 """
 from __future__ import annotations
 
+import os
+import re
 from functools import lru_cache
 from pathlib import Path
 
@@ -15,12 +17,29 @@ from msps_render.errors import InputError
 from msps_render.io.images import FORMATS, HDR_SUFFIXES
 
 
+def expand_path(pattern: str) -> str:
+    """`$VARS` and `~` of a config path expanded.  Why: a preset that names third-party assets (the
+    unseen-* test sets: `$MSPS_TEST_DATA/meshes/...`) cannot know where a user keeps them, and a path
+    relative to the working directory breaks from any other folder."""
+    return os.path.expanduser(os.path.expandvars(pattern))
+
+
+def missing_asset(pattern: str, path: str, problem: str) -> InputError:
+    """The error for a config path that names no file: an unset variable is named as the cause."""
+    unset = re.search(r"\$\{?(\w+)", path)  # expandvars leaves unset variables as written
+    if unset:
+        return InputError(pattern, f"environment variable {unset.group(1)} is not set (the folder this path is "
+                                   "read from; the unseen-* presets need the third-party test assets: "
+                                   "export MSPS_TEST_DATA=FOLDER holding meshes/ and envmaps/, e.g. ../shared/data)")
+    return InputError(path, problem + (f" (from '{pattern}' in the config)" if path != pattern else ""))
+
+
 @lru_cache(maxsize=4)
 def load_envmap(path: str) -> np.ndarray:
-    """Read and validate an environment map (cached per process: maps are read-only)."""
-    p = Path(path)
+    """Read and validate an environment map (cached per process: maps are read-only); `$VARS` expanded."""
+    p = Path(expand_path(path))
     if not p.is_file():
-        raise InputError(p, "environment map not found")
+        raise missing_asset(path, str(p), "environment map not found")
     fmt = FORMATS.get(p.suffix.lower())
     if fmt is None or not fmt.hdr:
         raise InputError(p, f"unsupported environment map format '{p.suffix}' (use {' or '.join(HDR_SUFFIXES)})")

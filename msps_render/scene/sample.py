@@ -7,6 +7,7 @@ and seed give the same SceneSpec on any machine.
 from __future__ import annotations
 
 import glob
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -16,7 +17,7 @@ from pydantic import Field, field_validator
 from msps_render.brdf.families import FAMILIES, GAMUTS, unknown_family
 from msps_render.config_io import StrictModel, read_toml, validate
 from msps_render.errors import InputError
-from msps_render.scene.envmap import envmap_pixels, irradiance_on_axis
+from msps_render.scene.envmap import envmap_pixels, expand_path, irradiance_on_axis, missing_asset
 from msps_render.scene.families import expand_families, sample_family_params
 from msps_render.scene.geometry import sample_blobby_coeffs
 from msps_render.scene.lights import PAPER_CROSSTALK, random_crosstalk, three_lights
@@ -47,7 +48,9 @@ class ShapeConfig(StrictModel):
     families: list[str] = Field(default_factory=lambda: ["mixed"],
                                 description="source='procedural': shape families, one drawn per shape "
                                             "('mixed' = all: detailed, creased, concave, thin, composite)")
-    meshes: list[str] = Field(default_factory=list, description="paths or globs (source='mesh')")
+    meshes: list[str] = Field(default_factory=list, description="paths or globs (source='mesh'); $VARS and ~ "
+                                                                 "are expanded (the unseen-* presets read "
+                                                                 "$MSPS_TEST_DATA/meshes/<name>.obj)")
     mesh_order: Literal["random", "cycle"] = Field(
         "random", description="source='mesh': draw a mesh per frame (random) or take them in turn (cycle: "
                               "frame k of each condition gets mesh k mod N, so every mesh gets the same "
@@ -75,11 +78,14 @@ class ShapeConfig(StrictModel):
         return v
 
     def mesh_paths(self) -> list[str]:
+        """Why variables: a preset that names third-party meshes (the unseen-* test sets) cannot know where
+        a user keeps them, and a path relative to the working directory breaks from any other folder."""
         out: list[str] = []
         for pat in self.meshes:
-            hits = sorted(glob.glob(pat))
+            path = expand_path(pat)
+            hits = sorted(glob.glob(path))
             if not hits:
-                raise InputError(pat, "no mesh file matches this path/pattern")
+                raise missing_asset(pat, path, "no mesh file matches this path/pattern")
             out.extend(hits)
         return out
 
@@ -167,7 +173,7 @@ class LightsConfig(StrictModel):
 class EnvironmentConfig(StrictModel):
     enabled: bool = Field(False, description="add environment (ambient) light")
     source: str = Field("procedural", description="'procedural' (seeded sky) or an env-map file "
-                                                                  "(.exr, .hdr)")
+                                                                  "(.exr, .hdr; $VARS and ~ expanded)")
     ratio: float = Field(0.1, ge=0.0, description="env irradiance / coloured-light irradiance")
     ratio_range: tuple[float, float] | None = Field(
         None, description="draw the ratio per frame uniformly in [lo, hi] (robust corpora); overrides ratio")
@@ -330,7 +336,8 @@ def environment_for_ratio(cfg: EnvironmentConfig, light_irradiance: float, rng: 
         raise InputError(cfg.source, f"environment map sheds no light on the camera-facing plane at rotation "
                                      f"{rot:g} deg: it cannot be scaled to the ratio {cfg.ratio}")
     scale = cfg.ratio * light_irradiance / e
-    return EnvSpec(source=cfg.source, scale=float(scale), rotation_deg=rot, seed=seed, ratio=cfg.ratio)
+    return EnvSpec(source=expand_path(cfg.source), scale=float(scale), rotation_deg=rot, seed=seed,
+                   ratio=cfg.ratio)  # the spec names the file read, whatever the worker's environment
 
 
 def load_scene_config(path: str | Path) -> SceneConfig:

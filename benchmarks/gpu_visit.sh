@@ -1,0 +1,122 @@
+#!/usr/bin/env bash
+# One visit to an offline GPU machine (docs/scaling.md "Running on a GPU"): install msps's missing
+# dependencies from a carried wheelhouse, verify CUDA rendering, measure rendering and training, and train
+# the `gpu` and `cpu` presets on corpora rendered there.  Every phase is time-boxed and logs to $OUT;
+# a failing phase does not stop the next.  Prepare here first:
+#   .venv/bin/python scripts/build_wheelhouse.py --out .whl --python 3.12 --no-hdf5plugin --no-msps
+#   .venv/bin/python benchmarks/gpu_check.py reference --out .gpu/ref
+# then run (carrying .whl and .gpu):  bash benchmarks/gpu_visit.sh   (OUT=dir; BUDGET_S=seconds)
+set -u
+cd "$(dirname "$0")/.."
+OUT=${OUT:-/tmp/gpu-out}; mkdir -p "$OUT"
+T0=$(date +%s); BUDGET_S=${BUDGET_S:-560}; S=${SCALE:-1}  # SCALE=8: a CPU dry run of the script
+W=/tmp/msps-gpu; mkdir -p $W
+LOG=$OUT/log.txt
+export PYTHONUNBUFFERED=1 PYTHONPATH=/tmp/site:$PWD
+MSPS="python3 -m msps_render.cli"
+left() { echo $(( BUDGET_S - ($(date +%s) - T0) )); }
+phase() {  # phase NAME TIMEOUT_S CMD...: run, log, record rc and seconds in phases.tsv
+  local name=$1 t=$2; shift 2
+  local a=$(date +%s.%N)
+  echo "=== $name (timeout ${t}s, $(left)s left) $(date -u +%T)" | tee -a $LOG
+  timeout -k 5 "$t" "$@" >>$LOG 2>&1; local rc=$?
+  local dt=$(python3 -c "print(round($(date +%s.%N)-$a,2))")
+  printf '%s\t%s\t%s\n' "$name" "$rc" "$dt" | tee -a $OUT/phases.tsv | tee -a $LOG
+}
+smi_start() { nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv,noheader,nounits -lms 200 \
+  > $W/smi-$1.csv 2>/dev/null & SMI=$!; }
+smi_stop() { kill $SMI 2>/dev/null; wait $SMI 2>/dev/null
+  python3 - "$1" >>$OUT/phases.tsv <<'EOF'
+import sys
+rows=[l.split(',') for l in open(f"/tmp/msps-gpu/smi-{sys.argv[1]}.csv") if l.count(',')==2]
+u=[float(r[1]) for r in rows]; m=[float(r[2]) for r in rows]
+print(f"gpu-busy:{sys.argv[1]}\t{(sum(u)/len(u) if u else -1):.1f}%\tmax_mem_MiB={max(m) if m else -1:.0f}\tsamples={len(u)}")
+EOF
+}
+
+# 0. install, what the machine is
+phase install 90 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site ${WHL:-.whl}/*.whl
+# kornia imports kornia_rs (5.3 MB, image file I/O only) at import time; msps uses kornia's SSIM alone, so a
+# wheelhouse built with --have ...,kornia-rs (to fit a 64 MiB transfer) gets an empty stand-in here.
+python3 -c "import kornia_rs" 2>/dev/null || { mkdir -p /tmp/site/kornia_rs; : > /tmp/site/kornia_rs/__init__.py; : > /tmp/site/kornia_rs/io.py; }
+{ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv; python3 -c "import torch,sys;print('python',sys.version.split()[0],'torch',torch.__version__,'cuda',torch.version.cuda)";
+  python3 -c "import mitsuba,drjit;print('mitsuba',mitsuba.__version__,mitsuba.variants(),'drjit',drjit.__version__)"; nproc; free -g | head -2; } >>$LOG 2>&1
+phase probe 90 python3 -c "
+import msps_render.render.variant as V
+for v in ('cuda_ad_rgb','cuda_ad_spectral','scalar_rgb','llvm_ad_rgb'): print(v, V.probe_variant(v))
+print('resolved', V.resolve_variant('rgb'), V.resolve_variant('spectral'))"
+
+complete() { python3 -c "import json,sys;sys.exit(0 if json.load(open('$W/data/$1/dataset.json')).get('complete') else 1)" 2>/dev/null; }
+if [ -z "${SKIP_TO_TRAIN:-}" ]; then  # SKIP_TO_TRAIN=1: reuse the corpora of an earlier run (a dry run of phases 4-5)
+# 1. tests on the GPU (CUDA variant resolved; closed-form physics, baseline, GPU tests, accel)
+phase pytest 110 env MSPS_TEST_JIT=${MSPS_TEST_JIT:-cuda} python3 -m pytest -q -p no:cacheprovider -rA \
+  tests/test_gpu.py tests/test_accel.py tests/test_render_physics.py tests/test_baseline.py 2>/dev/null \
+  || true
+grep -E "^(PASSED|FAILED|SKIPPED|ERROR)|passed|failed" $LOG | tail -60 > $OUT/pytest.txt
+
+# 2. CUDA vs carried LLVM renders
+phase gpu_check 90 python3 benchmarks/gpu_check.py check --ref .gpu/ref --out $W/gpu_check.json
+
+# 3. rendering: paper-train with 1, 4, 16 workers (frames/s, GPU busy), then the training corpora
+render() {  # render NAME PRESET WORKERS SHARDS TIMEOUT [extra --set ...]
+  local name=$1 preset=$2 w=$3 n=$4 t=$5; shift 5
+  smi_start $name
+  n=$(( (n + S - 1) / S ))
+  phase render:$name:w$w:shards$n "$t" $MSPS render $preset --out $W/data/$name --workers $w --quiet \
+    --set dataset.n_shards=$n --set dataset.storage.compression=lzf "$@"
+  smi_stop $name
+}
+render pt-w1 paper-train 1 4 45                       # 32 frames
+render pt-w4 paper-train 4 16 45                      # 128 frames
+render blobs paper-train 16 64 60 --seed 21           # 512 frames (also a training corpus)
+phase breakdown 45 env MSPS_THREADS=1 python3 benchmarks/bench_breakdown.py --preset paper-train --frames 48 --warmup 16
+render train train 16 48 70                           # 384 frames, 256x256, 32 spp
+render grey30 train-grey-30 16 40 60                  # 320 frames
+render val val 16 6 30                                # 48 frames
+fi
+THR=""; for c in blobs pt-w4 pt-w1; do complete $c && { THR=$c; break; }; done
+echo "throughput corpus: $THR" | tee -a $LOG
+
+# 4. training throughput (patches/s from metrics.jsonl; 2nd window, after cuDNN autotuning)
+thr() {  # thr NAME PRESET STEPS [--set ...]
+  local name=$1 preset=$2 steps=$(( $3 / S )); shift 3
+  smi_start thr-$name
+  phase train-thr:$name 60 $MSPS train $preset --data $W/data/$THR --val $W/data/val --out $W/thr/$name \
+    --set train.max_steps=$steps --set train.val_every=$((steps/2)) --set train.val_max_patches=256 \
+    --set train.cache=true --set train.num_workers=0 --set train.shuffle_window=0 "$@"
+  smi_stop thr-$name
+  python3 -c "import json;r=[json.loads(l) for l in open('$W/thr/$name/metrics.jsonl')];print('throughput:$name',r[-1]['patches_per_s'])" >>$OUT/phases.tsv 2>&1
+}
+if [ -z "${SKIP_THR:-}" ]; then
+thr cpu-b24 cpu 400 --set train.batch_size=24
+thr cpu-b256 cpu 200 --set train.batch_size=256
+thr gpu-b64 gpu 200
+thr paper-b24 paper 120 --set train.batch_size=24
+thr paper-b128 paper 80 --set train.batch_size=128
+thr paper-b128-fp32 paper 80 --set train.batch_size=128 --set train.precision=fp32 --set train.channels_last=false
+fi
+
+# 5. the larger network and a cpu-preset control, trained at once on the same corpora and minutes
+CORP=""; for c in train grey30 blobs; do complete $c && CORP="$CORP --data $W/data/$c"; done
+[ -z "$CORP" ] && CORP="--data $W/data/$THR"
+MIN=$(python3 -c "print(round(max(1.0, min(3.5, ($(left) - 45) / 60)), 2))")
+echo "training on:$CORP for $MIN min" | tee -a $LOG
+smi_start fit
+for p in gpu cpu; do
+  timeout -k 5 $(python3 -c "print(int($MIN*60+60))") $MSPS train $p $CORP --val $W/data/val --out $W/fit/$p \
+    --set train.max_minutes=$MIN --set train.batch_size=64 --set train.albedo_aug=0.1 \
+    --set train.albedo_aug_scope=lambertian --set train.shuffle_window=0 --set train.cache=true \
+    --set train.num_workers=4 --set train.val_max_patches=1024 >$W/fit-$p.log 2>&1 &
+done
+wait; smi_stop fit
+tail -3 $W/fit-gpu.log $W/fit-cpu.log >>$LOG
+for p in gpu cpu; do
+  python3 benchmarks/ship_model.py $W/fit/$p/best.pt $OUT/$p-gpu-trained.pt >>$LOG 2>&1
+  cp $W/fit/$p/metrics.jsonl $W/fit-$p-metrics.jsonl 2>/dev/null
+done
+
+# results: small files only (at most 8 come back)
+cp $W/gpu_check.json $OUT/ 2>/dev/null
+(cd $W && tar czf $OUT/extra.tgz smi-*.csv fit-*.log fit-*-metrics.jsonl thr/*/metrics.jsonl \
+   data/*/card.json data/*/dataset.json 2>/dev/null)
+echo "total $(( $(date +%s) - T0 )) s" | tee -a $LOG
