@@ -223,7 +223,8 @@ def test_export_stopped_by_a_file_size_limit_leaves_nothing(reference, tmp_path)
     line = one_line_error(cli("export", reference, "--format", "png16", "--out", out, fsize=8000))
     assert "File too large" in line
     named = Path(line.split("error: ", 1)[1].split(": File too large")[0])
-    assert named.is_relative_to(out), line  # the file as named under --out, not the hidden stage
+    assert named.is_relative_to(out) and named != out, line  # the file as under --out, not in the hidden stage
+    assert named.suffix == ".png", line
     assert listing(tmp_path) == []  # no --out, no stage, not even the parent made for it
     r = cli("export", reference, "--format", "png16", "--out", out)  # the fault lifted: the same command works
     assert r.returncode == 0, r.stderr[-2000:]
