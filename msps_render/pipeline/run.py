@@ -13,7 +13,7 @@ from pathlib import Path
 import msps_render
 from msps_render.dataset import file_digest
 from msps_render.dataset.manifest import MANIFEST, SHARD_DIR, new_manifest, read_manifest, write_manifest
-from msps_render.errors import InputError, Interrupted
+from msps_render.errors import InputError, Interrupted, brief
 from msps_render.scene.materials import material_pool, pool_difference
 from msps_render.config_io import apply_overrides
 from msps_render.pipeline.config import (DatasetConfig, _qualify, config_hash, config_json, validate_config)
@@ -290,7 +290,11 @@ def _check_space(cfg, out: Path, tasks, existing: dict | None, force: bool, h: s
     keep = existing is not None and not force and existing.get("config_hash") == h
     todo = len(tasks) - (len(existing.get("shards") or {}) if keep else 0)
     reclaim = 0 if keep else sum(p.stat().st_size for p in (out / SHARD_DIR).glob("shard-*.h5"))
-    check = check_space(cfg, tasks, todo, out, variant, threads, reclaim)
+    try:
+        check = check_space(cfg, tasks, todo, out, variant, threads, reclaim)
+    except Exception as e:  # noqa: BLE001 - advice only: a probe that fails (a full /tmp) must not stop the render
+        print(f"warning: {out}: free space not checked ({type(e).__name__}: {brief(str(e), 100)})", file=sys.stderr)
+        return
     if not check.fits:
         raise InputError(out, f"not enough free space: {space_line(check)}; make room, choose another --out, "
                               "or --no-space-check to render anyway (a full disk then stops it cleanly and "
