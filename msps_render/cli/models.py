@@ -38,20 +38,23 @@ def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAM
                                                   "(same network), fresh optimizer and schedule"),
               set_: List[str] = typer.Option([], "--set", help="override, e.g. train.max_minutes=10"),
               device: str = typer.Option("auto", help="auto (CUDA when usable, else CPU), cpu or cuda"),
-              threads: Optional[int] = typer.Option(None, help="torch CPU threads")):
+              threads: Optional[int] = typer.Option(None, help="torch CPU threads"),
+              smoke: bool = typer.Option(False, "--smoke", help="a short check that the whole loop works on "
+                                         "your data: a few minutes on 2 cores (docs/reproducing.md)"),
+              json_out: bool = typer.Option(False, "--json", help="print the end summary as JSON")):
     """Train the dual-cue network (or an ablation: --set net.mode=scn|pcn)."""
     import torch
 
-    from msps_render.models.presets import load_model_config
-    from msps_render.models.train import train
+    from msps_render.models.presets import SMOKE, load_model_config
+    from msps_render.models.train import summary_lines, train
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out, "run")  # an unwritable --out: one line before the data is read
     if threads:
         torch.set_num_threads(threads)
-    cfg = load_model_config(config, list(set_))
-    typer.echo(json.dumps(train(cfg, data if len(data) > 1 else data[0], val, out, resume=resume, device=device,
-                                init=init)))
+    cfg = load_model_config(config, [*(SMOKE if smoke else ()), *set_])
+    r = train(cfg, data if len(data) > 1 else data[0], val, out, resume=resume, device=device, init=init)
+    typer.echo(json.dumps(r) if json_out else "\n".join(summary_lines(r)))
 
 
 @app.command("eval")

@@ -75,6 +75,11 @@ class TrainSection(StrictModel):
                            "coloured highlight, which dielectrics never have (docs/history.md, stage 11)")
 
 
+# `msps train PRESET --smoke`: the whole loop (data, steps, validation, checkpoints, curve) in minutes on
+# 2 cores -- a 2.5-minute budget and a 512-patch validation (~2 s per check for the cpu preset).
+SMOKE = ("train.max_minutes=2.5", "train.val_max_patches=512")
+
+
 class ModelConfig(StrictModel):
     preset: str = Field("custom", description="preset name (recorded in checkpoints)")
     net: NetSection = NetSection()

@@ -57,6 +57,21 @@ def _sha1(path: str | Path) -> str:
     return hashlib.sha1(Path(path).read_bytes()).hexdigest()
 
 
+def first_patches(loader, max_patches: int) -> list[dict]:
+    """The first `max_patches` patches of `loader`'s first epoch as a list of batches, read once.
+
+    Why: every validation used to iterate the loader again, decoding its first shards anew (most of a
+    validation's cost on small checks); the patches were the same each time (a fixed seed and epoch),
+    so they are now decoded once and kept (2,000 patches: ~80 MB)."""
+    out, seen = [], 0
+    for b in loader:
+        out.append(b)
+        seen += len(b["image"])
+        if seen >= max_patches:
+            break
+    return out
+
+
 @torch.no_grad()
 def validate(model, loader, max_patches: int, accel: Accel = CPU) -> float:
     """Mean angular error (degrees) over object pixels of up to `max_patches` patches."""
@@ -98,6 +113,7 @@ class Run:
                                                  "best_val": float("inf")})
     train_lights: dict | None = None  # the light geometry of the training data (predict compares against it)
     n_params: int = 0
+    val_seconds: float = 0.0  # wall time spent validating in this process (the end summary's share)
     t_start: float = 0.0
     budget: float = float("inf")
 
@@ -292,34 +308,42 @@ VAL_MAX_SHARE = 0.2  # time-triggered validations take at most about this share 
 @dataclass
 class ValCadence:
     """When to validate: every `every` steps (`val_every`, or denser so that the planned steps give
-    `VAL_POINTS` points), and with a time budget also after `budget / VAL_POINTS` seconds without one
-    (or more, so validation stays near `VAL_MAX_SHARE` of the time).  Validation changes no training
-    state, so the time trigger leaves the trained weights reproducible."""
+    `VAL_POINTS` points), with a time budget also after `budget / VAL_POINTS` seconds without one -- but
+    never so often that validation takes more than `VAL_MAX_SHARE` of the wall time (a 2000-patch check
+    costs ~30 training steps of the cpu preset: in a short run the step cadence alone made validation
+    most of the run).  Validation changes no training state, so the weights of step N do not depend on
+    when it ran; only which checkpoint is `best.pt` can."""
 
     every: int
     seconds: float = float("inf")
     last_t: float = 0.0
     val_s: float = 0.0
+    last_step: int = 0
 
     @classmethod
-    def plan(cls, cfg: ModelConfig, batches_per_epoch: int, budget_s: float, now: float) -> "ValCadence":
+    def plan(cls, cfg: ModelConfig, batches_per_epoch: int, budget_s: float, now: float,
+             step: int = 0) -> "ValCadence":
         t = cfg.train
         steps = min(t.max_steps, t.epochs * max(batches_per_epoch, 1))
-        return cls(max(1, min(t.val_every, steps // VAL_POINTS)), budget_s / VAL_POINTS, now)
+        return cls(max(1, min(t.val_every, steps // VAL_POINTS)), budget_s / VAL_POINTS, now, last_step=step)
 
     def due(self, step: int, now: float) -> bool:
-        wait = max(self.seconds, self.val_s * (1 - VAL_MAX_SHARE) / VAL_MAX_SHARE)
-        return step % self.every == 0 or now - self.last_t >= wait
+        since = now - self.last_t
+        if since < self.val_s * (1 - VAL_MAX_SHARE) / VAL_MAX_SHARE:
+            return False
+        return step - self.last_step >= self.every or since >= self.seconds
 
-    def done(self, started: float, now: float) -> None:
+    def done(self, started: float, now: float, step: int | None = None) -> None:
         self.val_s, self.last_t = now - started, now
+        if step is not None:
+            self.last_step = step
 
 
 def fit(run: Run, loader, val_loader, log, bar, accel: Accel = CPU) -> None:
     """Epochs of `train_step` until the step or time budget; validate + `record` when `ValCadence` says."""
     t_cfg, state = run.cfg.train, run.state
     set_train_mode(run.model, t_cfg.freeze_bn)
-    cadence = ValCadence.plan(run.cfg, len(loader), run.budget, time.perf_counter())
+    cadence = ValCadence.plan(run.cfg, len(loader), run.budget, time.perf_counter(), state["step"])
     done = run.should_stop()  # a finished run resumed does no extra step
     window_t, window_n, run_loss = time.perf_counter(), 0, []
     while not done and state["epoch"] < t_cfg.epochs:
@@ -341,7 +365,8 @@ def fit(run: Run, loader, val_loader, log, bar, accel: Accel = CPU) -> None:
                 t0 = time.perf_counter()
                 v = validate(run.model, val_loader, t_cfg.val_max_patches, accel)
                 record(run, log, v, run_loss, parts, lr, window_n / (t0 - window_t))
-                cadence.done(t0, time.perf_counter())
+                cadence.done(t0, time.perf_counter(), state["step"])
+                run.val_seconds += cadence.val_s
                 if bar:
                     bar.set_postfix(loss=f"{float(torch.stack(run_loss[-50:]).mean()) if run_loss else 0:.4f}",
                                     val=f"{v:.2f}deg", best=f"{state['best_val']:.2f}deg", epoch=state["epoch"])
@@ -377,7 +402,7 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
     write_text(out / "config.json", json.dumps(cfg.model_dump(mode="json"), indent=1))
     loader = make_loader(train_ds, t_cfg.batch_size, shuffle=True, seed=t_cfg.seed, drop_last=True,
                          num_workers=t_cfg.num_workers, window=t_cfg.shuffle_window or None)
-    val_loader = make_loader(val_ds, 64, shuffle=True, seed=1234)
+    val_loader = first_patches(make_loader(val_ds, 64, shuffle=True, seed=1234), t_cfg.val_max_patches)
     with AppendLog(out / "metrics.jsonl") as log:  # a full disk: one line; --resume trims (trim_metrics)
         run.n_params = count_parameters(model)
         run.t_start = time.perf_counter() - run.state["elapsed"]
@@ -386,7 +411,8 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=t_cfg.max_steps, initial=run.state["step"], unit="step", dynamic_ncols=True)
+            planned = min(t_cfg.max_steps, t_cfg.epochs * max(len(loader), 1))  # a time budget may end it sooner
+            bar = tqdm(total=planned, initial=run.state["step"], unit="step", dynamic_ncols=True)
         try:
             fit(run, loader, val_loader, log, bar, accel)
             run.checkpoint("last.pt")
@@ -395,8 +421,26 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
                 bar.close()
     plot_metrics(out / "metrics.jsonl", out / "metrics.png")
     s = run.state
-    return {"steps": s["step"], "epochs": s["epoch"], "best_val_mae_deg": s["best_val"],
-            "elapsed_s": run.elapsed(), "n_params": run.n_params}
+    batches = max(len(loader), 1)
+    return {"steps": s["step"], "epochs": round(s["epoch"] + s["batch_in_epoch"] / batches, 3),
+            "patches_seen": s["step"] * t_cfg.batch_size, "corpus_patches": len(train_ds),
+            "best_val_mae_deg": s["best_val"], "elapsed_s": run.elapsed(), "n_params": run.n_params,
+            "validation_s": run.val_seconds, "device": accel.describe(), "preset": cfg.preset, "out": str(out)}
+
+
+def summary_lines(r: dict) -> list[str]:
+    """The end of `msps train`, for a person: what ran, how far, how well, where the result is."""
+    out = Path(r["out"])
+    share = r["validation_s"] / r["elapsed_s"] if r["elapsed_s"] > 0 else 0.0
+    best = out / "best.pt"
+    return [f"trained {r['preset']} ({r['n_params']:,} parameters) on {r['device']}: {r['steps']:,} steps, "
+            f"{r['epochs']:.2f} epochs ({r['patches_seen']:,} patches of a {r['corpus_patches']:,}-patch corpus), "
+            f"{r['elapsed_s'] / 60:.1f} min, {100 * share:.0f} % of it validating",
+            f"best validation error: {r['best_val_mae_deg']:.2f} deg (mean angular error over object pixels)",
+            f"checkpoint: {best if best.is_file() else out / 'last.pt'}  (resume: --resume; curve: "
+            f"{out / 'metrics.png'})",
+            f"evaluate: msps eval --data TEST_DIR --checkpoint {best if best.is_file() else out / 'last.pt'} "
+            f"--out REPORT_DIR"]
 
 
 def plot_metrics(jsonl: Path, png: Path, title: str | None = None) -> Path | None:
