@@ -96,6 +96,17 @@ def writing(path: str | Path) -> Iterator[None]:
         raise WriteFailed(path, code) from None
 
 
+def save_array(path: str | Path, a) -> Path:
+    """`np.save` to `path` atomically (numpy reports a short write without the errno or the file)."""
+    import io
+
+    import numpy as np
+
+    buf = io.BytesIO()
+    np.save(buf, a, allow_pickle=False)
+    return write_bytes(path, buf.getbuffer())
+
+
 def save_figure(fig, path: str | Path, **kw) -> Path:
     """`fig.savefig` (matplotlib) to `path` atomically, its format from the suffix."""
     with atomic_write(path) as tmp:

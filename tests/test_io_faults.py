@@ -22,7 +22,7 @@ import pytest
 from msps_render.atomic import AppendLog, atomic_write, write_bytes
 from msps_render.dataset import file_digest
 from msps_render.dataset.manifest import read_manifest
-from msps_render.errors import WriteFailed, write_fault
+from msps_render.errors import SHORT_WRITE, WriteFailed, write_fault
 
 pytestmark = pytest.mark.usefixtures("force_llvm")  # LLVM even where CUDA is preferred (conftest.py)
 
@@ -65,6 +65,8 @@ def test_write_fault_reads_plain_and_wrapped_errnos():
     h5 = RuntimeError("Can't decrement id ref count (file write failed: time = Fri Dec  4 2026\n, filename = "
                       "'x.h5', file descriptor = 4, errno = 28, error message = 'No space left on device')")
     assert write_fault(h5) == errno.ENOSPC
+    assert write_fault(OSError("12288 requested and 992 written")) == SHORT_WRITE  # numpy's short write
+    assert write_fault(OSError("something else")) is None
     assert write_fault(OSError(errno.ENOENT, "No such file or directory", "f")) is None
     assert write_fault(RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 1 vs 2")) is None
     assert write_fault(ValueError("errno = 28")) is None
