@@ -216,7 +216,8 @@ def test_train_stopped_at_its_first_checkpoint_by_a_file_size_limit(reference, t
     r = _train(reference, run)
     assert r.returncode == 0, r.stderr[-2000:]
     steps = [json.loads(l)["step"] for l in (run / "metrics.jsonl").read_text().splitlines()]
-    assert steps == [1, 2, 3]
+    assert steps == sorted(set(steps)) and steps[0] == 1 and steps[-1] == 3  # each record once (step 2's
+    # depends on timing: `ValCadence` keeps validation near a fifth of the wall time)
 
 
 # ----------------------------------------------------------------------------- export
@@ -299,7 +300,8 @@ def test_train_on_a_full_disk_keeps_the_last_checkpoint_and_resumes(reference, t
     r = _train(reference, run, "--resume")
     assert r.returncode == 0, r.stderr[-2000:]
     steps = [json.loads(l)["step"] for l in (run / "metrics.jsonl").read_text().splitlines()]
-    assert steps == [1, 2, 3]
+    assert steps == sorted(set(steps)) and steps[0] == 1 and steps[-1] == 3  # each record once (step 2's
+    # depends on timing: `ValCadence` keeps validation near a fifth of the wall time)
     ref = tmp_path / "ref-run"
     assert _train(reference, ref).returncode == 0
     a = torch.load(run / "last.pt", weights_only=True)["model"]
