@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import difflib
+import errno
+import os
+import re
 from pathlib import Path
 
 
@@ -15,6 +18,58 @@ class InputError(ValueError):
 
     def __reduce__(self):  # crosses process boundaries intact (local pool, Dask)
         return (type(self), (self.source, self.problem))
+
+
+class WriteFailed(OSError):
+    """A file could not be written: the disk is full, a quota or a file-size limit was hit, or the
+    place is read-only or forbidden.  Raised by the writers (`atomic.atomic_write`, `atomic.writing`)
+    naming the file; printed like an `InputError` ('FILE: cause'), one line, exit 1.  An OSError
+    (with the errno) so that callers which handle OS errors keep doing so."""
+
+    def __init__(self, source: str | Path, code: int, problem: str | None = None):
+        self.source = str(source)
+        self.problem = problem or fault_cause(code)
+        super().__init__(code, self.problem, self.source)
+
+    def __str__(self) -> str:
+        return f"{self.source}: {self.problem}"
+
+    def __reduce__(self):  # crosses process boundaries intact (local pool, Dask)
+        return (type(self), (self.source, self.errno, self.problem))
+
+
+# Write faults a user can fix (free space, raise a limit, choose another place).
+WRITE_FAULTS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG)
+# HDF5 (through h5py) wraps the errno in its own message: "..., errno = 28, error message = ...".
+_WRAPPED_ERRNO = re.compile(r"errno = (\d+)")
+# numpy (`np.save`, `tofile`) reports a short write without the errno: "12288 requested and 992 written".
+_SHORT_WRITE = re.compile(r"^\d+ requested and \d+ written$")
+SHORT_WRITE = -1  # the code `write_fault` gives that case (the OS's reason is unknown)
+
+
+def fault_cause(code: int) -> str:
+    """The OS's words for a write fault ('No space left on device'), with the limit to look at for EFBIG."""
+    if code == SHORT_WRITE:
+        return "the disk took only part of a write (full, or a file-size limit)"
+    why = os.strerror(code)
+    return why + " (a file-size limit: see `ulimit -f`)" if code == errno.EFBIG else why
+
+
+def write_fault(exc: BaseException) -> int | None:
+    """The errno of a failed write if `exc` is one of `WRITE_FAULTS`, plain (OSError) or wrapped by
+    h5py/HDF5 (RuntimeError/OSError whose message names the errno), `SHORT_WRITE` for numpy's short
+    write; else None."""
+    if isinstance(exc, WriteFailed):
+        return exc.errno
+    if isinstance(exc, OSError) and exc.errno in WRITE_FAULTS:
+        return exc.errno
+    if type(exc) is OSError and exc.errno is None and _SHORT_WRITE.match(str(exc)):
+        return SHORT_WRITE
+    if isinstance(exc, (OSError, RuntimeError)):
+        m = _WRAPPED_ERRNO.search(str(exc))
+        if m and int(m.group(1)) in WRITE_FAULTS:
+            return int(m.group(1))
+    return None
 
 
 class WorkerDied(RuntimeError):

@@ -6,7 +6,7 @@ import signal
 
 import typer
 
-from msps_render.errors import InputError, Interrupted, WorkerDied
+from msps_render.errors import InputError, Interrupted, WorkerDied, WriteFailed, fault_cause, write_fault
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   context_settings={"help_option_names": ["-h", "--help"]},
@@ -44,26 +44,45 @@ def _os_error_line(e: OSError) -> str:
     return f"{target}: {what}"
 
 
+def _write_fault_line(e: BaseException, code: int, kw: dict) -> str:
+    """'FILE: cause' for a write fault; where the library did not say which file, the command's
+    --out (the place it was writing to).  Commands that resume say how to go on once it is fixed."""
+    cause = fault_cause(code)
+    if isinstance(e, WriteFailed):
+        line = str(e)
+    elif isinstance(e, OSError) and e.filename is not None:
+        line = f"{e.filename}: {cause}"
+    else:
+        line = f"{kw['out']}: {cause}" if kw.get("out") is not None else cause
+    if isinstance(e, WriteFailed) and "resume" in kw:  # our writers were writing: the run can go on
+        line += "; nothing finished is lost: make room (or fix the place), then rerun with --resume"
+    return line
+
+
 def clean_errors(fn):
-    """Decorator: bad input or an unusable path -> one line + exit 1 (no traceback);
+    """Decorator: bad input or an unusable path -> one line + exit 1 (no traceback); a write fault
+    (disk full, quota, read-only, file-size limit: `errors.write_fault`) likewise, naming the file;
     an interrupted render -> its summary line + exit 128 + signal (130 SIGINT, 143 SIGTERM)."""
 
     @functools.wraps(fn)
     def wrapper(*a, **kw):
         try:
             return fn(*a, **kw)
-        except (InputError, WorkerDied) as e:
-            fail(str(e))
+        except (InputError, WorkerDied, OSError, RuntimeError) as e:
+            code = write_fault(e)
+            if code is not None:
+                fail(_write_fault_line(e, code, kw))
+            if isinstance(e, (InputError, WorkerDied)):
+                fail(str(e))
+            if isinstance(e, OSError) and (e.filename is not None or isinstance(e, (
+                    PermissionError, FileNotFoundError, IsADirectoryError, NotADirectoryError, FileExistsError))):
+                fail(_os_error_line(e))
+            raise
         except Interrupted as e:
             typer.echo(str(e), err=True)
             raise typer.Exit(e.exit_code)
         except KeyboardInterrupt:  # Ctrl-C before a render's own handling began (config, validation)
             typer.echo("msps: interrupted", err=True)
             raise typer.Exit(128 + signal.SIGINT)
-        except OSError as e:
-            if e.filename is None and not isinstance(e, (PermissionError, FileNotFoundError, IsADirectoryError,
-                                                         NotADirectoryError, FileExistsError)):
-                raise
-            fail(_os_error_line(e))
 
     return wrapper

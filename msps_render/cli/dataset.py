@@ -28,6 +28,9 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
                threads: Optional[int] = typer.Option(None, help="render threads per worker (default: cores / workers)"),
                recycle_after: int = typer.Option(0, help="replace a local worker after N shards (0: never)"),
                quiet: bool = typer.Option(False, help="no progress bar"),
+               space_check: bool = typer.Option(True, "--space-check/--no-space-check",
+                                                help="before rendering, refuse when the shards will not fit "
+                                                     "in the free space (estimate: `msps config show --probe`)"),
                partition: Optional[str] = typer.Option(None, help="Slurm: partition (scheduler.slurm.partition)"),
                cores: Optional[int] = typer.Option(None, help="Slurm: CPUs per worker job"),
                memory: Optional[str] = typer.Option(None, help="Slurm: memory per worker job, e.g. 4GB"),
@@ -58,7 +61,7 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
                                      memory=memory, walltime=walltime, sbatch=sbatch)
     m = render_dataset(cfg, out, workers=workers, scheduler=scheduler, resume=resume, force=force,
                        variant=variant, threads=threads, progress=not quiet,
-                       recycle_after=recycle_after or None)
+                       recycle_after=recycle_after or None, space_check=space_check)
     card = f"; card: {out / 'card.png'}" if m["complete"] and (out / "card.png").is_file() else ""
     typer.echo(f"{out}: {len(m['shards'])} shards, {m['n_patches']} patches, complete={m['complete']}{card}{note}")
 

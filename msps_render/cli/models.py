@@ -47,7 +47,9 @@ def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAM
 
     from msps_render.models.presets import SMOKE, load_model_config
     from msps_render.models.train import summary_lines, train
+    from msps_render.pipeline.outdir import check_writable
 
+    check_writable(out, "run")  # an unwritable --out: one line before the data is read
     if threads:
         torch.set_num_threads(threads)
     cfg = load_model_config(config, [*(SMOKE if smoke else ()), *set_])

@@ -47,6 +47,7 @@ def sample_scene_cmd(out: Path = typer.Option(..., "--out", "-o", help="SceneSpe
     """Draw one SceneSpec from a seed (default scene config) and save it as JSON."""
     import numpy as np
 
+    from msps_render.atomic import write_text
     from msps_render.pipeline.outdir import check_writable
     from msps_render.scene.sample import SceneConfig, load_scene_config, sample_scene
 
@@ -54,7 +55,7 @@ def sample_scene_cmd(out: Path = typer.Option(..., "--out", "-o", help="SceneSpe
     cfg = load_scene_config(config) if config else SceneConfig()
     spec = sample_scene(cfg, np.random.default_rng(seed), seed=seed)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(spec.to_json())
+    write_text(out, spec.to_json())
     if show:
         typer.echo(spec.summary())
     typer.echo(f"wrote {out}")

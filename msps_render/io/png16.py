@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from msps_render.atomic import writing
 from msps_render.errors import InputError
 
 _SIG = b"\x89PNG\r\n\x1a\n"
@@ -59,7 +60,8 @@ def encode_png(a: np.ndarray, srgb: bool = False) -> bytes:
 
 def write_png(path: str | Path, a: np.ndarray, srgb: bool = False) -> Path:
     p = Path(path)
-    p.write_bytes(encode_png(a, srgb))
+    with writing(p):  # a full disk: one line naming this file (no fsync: exports write thousands)
+        p.write_bytes(encode_png(a, srgb))
     return p
 
 

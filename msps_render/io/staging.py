@@ -7,7 +7,7 @@ import shutil
 from pathlib import Path
 
 from msps_render.atomic import fsync_dir
-from msps_render.errors import InputError
+from msps_render.errors import InputError, WriteFailed, write_fault
 
 
 def _missing_parents(out: Path) -> list[Path]:
@@ -38,7 +38,8 @@ def check_new_out(out: Path) -> None:
 
 @contextlib.contextmanager
 def staged_dir(out: Path):
-    """Yield a temporary directory beside `out`; on success it becomes `out`, on any error it is removed."""
+    """Yield a temporary directory beside `out`; on success it becomes `out`, on any error it is removed.
+    A write fault (disk full, ...) is one `WriteFailed` naming the file as it would have been under `out`."""
     out = Path(out)
     check_new_out(out)
     created = _missing_parents(out)
@@ -52,9 +53,19 @@ def staged_dir(out: Path):
             out.rmdir()  # empty (checked above)
         os.replace(stage, out)
         fsync_dir(out.parent)  # the rename lives in the parent: make it durable
-    except BaseException:
+    except BaseException as e:
         shutil.rmtree(stage, ignore_errors=True)
         for d in created:  # the parent folders made for `out`, deepest first: nothing left behind
             with contextlib.suppress(OSError):
                 d.rmdir()
-        raise
+        code = write_fault(e)
+        if code is None:
+            raise
+        raise WriteFailed(_under(out, stage, getattr(e, "filename", None)), code) from None
+
+
+def _under(out: Path, stage: Path, name: str | None) -> Path:
+    """`name` (a file in `stage`) as it would have been in `out`; `out` itself when unknown or elsewhere."""
+    if name and Path(name).absolute().is_relative_to(stage.absolute()):
+        return out / Path(name).absolute().relative_to(stage.absolute())
+    return out

@@ -6,11 +6,12 @@ epoch, position, RNG state) and provenance (data hash, validation error).
 """
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import torch
 
-from msps_render.atomic import atomic_write
+from msps_render.atomic import write_bytes
 from msps_render.errors import InputError, brief
 from msps_render.models.net import DualCueNet
 from msps_render.models.presets import ModelConfig
@@ -22,9 +23,15 @@ def save_checkpoint(path: Path, model, cfg: ModelConfig, extra: dict) -> Path:
     """Write weights + config (+ `extra`) atomically to `path`."""
     ck = {"model": model.state_dict(), "config": cfg.model_dump(mode="json"), "preset": cfg.preset,
           "format": FORMAT, **extra}
-    with atomic_write(path) as tmp:
-        torch.save(ck, tmp)
-    return path
+    return save_dict(path, ck)
+
+
+def save_dict(path: str | Path, ck: dict) -> Path:
+    """`torch.save(ck)` to `path` atomically.  Serialised in memory first: torch writing to a full disk
+    says only 'unexpected pos'; written by `write_bytes`, a full disk is one `WriteFailed` naming `path`."""
+    buf = io.BytesIO()
+    torch.save(ck, buf)
+    return write_bytes(path, buf.getbuffer())
 
 
 def load_checkpoint(path: str | Path, expect_preset: str | None = None, map_location: str = "cpu"):
@@ -62,6 +69,4 @@ def export_checkpoint(src: str | Path, dst: str | Path, train_lights: dict | Non
     out["state"] = {k: v for k, v in ck.get("state", {}).items() if k != "batch_in_epoch"}
     if train_lights is not None:
         out["train_lights"] = train_lights
-    with atomic_write(Path(dst)) as tmp:
-        torch.save(out, tmp)
-    return Path(dst)
+    return save_dict(dst, out)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from msps_render.atomic import save_array
 from msps_render.calibration import geometry_warnings, load_calibration_file, parse_calibration
 from msps_render.errors import InputError
 from msps_render.io.images import read_image, write_png
@@ -284,7 +285,7 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
         label += (f" +segments ({len(sfit.accepted)} regions)" if sfit.applied else " +segments (not applied)")
     paths = out_paths(out)
     paths["npy"].parent.mkdir(parents=True, exist_ok=True)
-    np.save(paths["npy"], n.astype(np.float32))
+    save_array(paths["npy"], n.astype(np.float32))
     files = [paths["npy"], write_png(paths["png"], normal_to_rgb8(n, mk))]
     title = f"{Path(image).name}: {label}"
     err = None

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from msps_render.atomic import save_figure, write_text
+
 HIST_BIN_DEG = 2.0  # error histogram bins stored in metrics.json: [0, 2), [2, 4), ... [178, 180]
 PER_OBJECT_NOTE = "per-object MAE = mean of the object's per-frame MAEs (each frame weighs the same)"
 BASELINE = "lambertian"
@@ -70,7 +72,7 @@ def table_markdown(report: dict) -> str:
 def write_tables(report: dict, out: Path) -> list[Path]:
     """table.md always; per_object.csv when whole frames were evaluated (format 1 with one method)."""
     names = list(report["methods"])
-    (out / "table.md").write_text(table_markdown(report))
+    write_text(out / "table.md", table_markdown(report))
     files = [out / "table.md"]
     rows = []
     first = report["methods"][names[0]]["conditions"]
@@ -83,7 +85,7 @@ def write_tables(report: dict, out: Path) -> list[Path]:
                 rows.append(f"{cond},{obj},{d['n_frames']}," + ",".join(f"{v:.3f}" for v in vals))
     if rows:
         head = "condition,object,mae_deg" if len(names) == 1 else "condition,object,n_frames," + ",".join(names)
-        (out / "per_object.csv").write_text(head + "\n" + "\n".join(rows) + "\n")
+        write_text(out / "per_object.csv", head + "\n" + "\n".join(rows) + "\n")
         files.append(out / "per_object.csv")
     return files
 
@@ -176,7 +178,7 @@ def _error_hist(report: dict, out: Path) -> Path:
     _legend(ax[1], title=None if single else "method" if len(names) > 1 else "condition", title_fontsize=8)
     fig.suptitle(_title(report, "Angular error of patch pixels"), fontsize=10)
     fig.tight_layout()
-    fig.savefig(out / "error_hist.png", dpi=DPI)
+    save_figure(fig, out / "error_hist.png", dpi=DPI)
     plt.close(fig)
     return out / "error_hist.png"
 
@@ -245,7 +247,7 @@ def _per_object(report: dict, out: Path) -> Path:
     fig.text(0.01, 0.01, "error bars: 95 % CI, bootstrap over the object's frames; n: frames", fontsize=7,
              color="0.3")
     fig.tight_layout(rect=(0, 0.03, 1, 1))
-    fig.savefig(out / "per_object.png", dpi=DPI)
+    save_figure(fig, out / "per_object.png", dpi=DPI)
     plt.close(fig)
     return out / "per_object.png"
 
@@ -302,7 +304,7 @@ def _robustness(report: dict, out: Path) -> Path:
     if key_lines:
         fig.subplots_adjust(bottom=0.22 + 0.05 * len(key_lines))
         fig.text(0.01, 0.01, "\n".join(key_lines), fontsize=7, family="monospace", va="bottom")
-    fig.savefig(out / "robustness.png", dpi=DPI)
+    save_figure(fig, out / "robustness.png", dpi=DPI)
     plt.close(fig)
     return out / "robustness.png"
 

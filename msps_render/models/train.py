@@ -30,6 +30,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from msps_render.atomic import AppendLog, save_figure, write_text
 from msps_render.dataset import read_manifest, training_lights
 from msps_render.errors import InputError, not_a_dataset
 from msps_render.models.accel import CPU, Accel, resolve_accel
@@ -267,6 +268,23 @@ def record(run: Run, log, val_mae: float, losses: list, parts: dict, lr: float, 
     run.checkpoint("last.pt", val_mae)
 
 
+def trim_metrics(jsonl: Path, step: int) -> None:
+    """Keep the whole records of `jsonl` up to `step` (the checkpoint the run starts from; 0 for a new
+    run): a run stopped by a full disk may end in a torn line, or in records whose checkpoint was never
+    written."""
+    if not jsonl.is_file():
+        return
+    keep = []
+    for line in jsonl.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(rec, dict) and rec.get("step", 0) <= step:
+            keep.append(line + "\n")
+    write_text(jsonl, "".join(keep))
+
+
 def open_data(data, val, verify: bool, cache: bool | str = False):
     """(training, validation) PatchDatasets; `InputError` if either has no patches.
 
@@ -380,11 +398,12 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
     run = Run(cfg, out, model, opt, data_hash(data), train_lights=training_lights(data))
     start_run(run, resume, init)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=1))
+    trim_metrics(out / "metrics.jsonl", run.state["step"])  # a new run: none left by a run never checkpointed
+    write_text(out / "config.json", json.dumps(cfg.model_dump(mode="json"), indent=1))
     loader = make_loader(train_ds, t_cfg.batch_size, shuffle=True, seed=t_cfg.seed, drop_last=True,
                          num_workers=t_cfg.num_workers, window=t_cfg.shuffle_window or None)
     val_loader = first_patches(make_loader(val_ds, 64, shuffle=True, seed=1234), t_cfg.val_max_patches)
-    with open(out / "metrics.jsonl", "a") as log:
+    with AppendLog(out / "metrics.jsonl") as log:  # a full disk: one line; --resume trims (trim_metrics)
         run.n_params = count_parameters(model)
         run.t_start = time.perf_counter() - run.state["elapsed"]
         run.budget = t_cfg.max_minutes * 60 if t_cfg.max_minutes else float("inf")
@@ -394,10 +413,12 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
 
             planned = min(t_cfg.max_steps, t_cfg.epochs * max(len(loader), 1))  # a time budget may end it sooner
             bar = tqdm(total=planned, initial=run.state["step"], unit="step", dynamic_ncols=True)
-        fit(run, loader, val_loader, log, bar, accel)
-        run.checkpoint("last.pt")
-    if bar:
-        bar.close()
+        try:
+            fit(run, loader, val_loader, log, bar, accel)
+            run.checkpoint("last.pt")
+        finally:
+            if bar:  # closed before an error's line is printed, not after it
+                bar.close()
     plot_metrics(out / "metrics.jsonl", out / "metrics.png")
     s = run.state
     batches = max(len(loader), 1)
@@ -455,6 +476,6 @@ def plot_metrics(jsonl: Path, png: Path, title: str | None = None) -> Path | Non
     mins = recs[-1].get("elapsed_s", 0) / 60
     fig.suptitle(f"{title}: {len(recs)} validations, {steps[-1]} steps, {mins:.1f} min", fontsize=10)
     fig.tight_layout()
-    fig.savefig(png, dpi=90)
+    save_figure(fig, png, dpi=90)
     plt.close(fig)
     return png

@@ -14,7 +14,7 @@ from pathlib import Path
 import msps_render
 from msps_render.dataset import file_digest
 from msps_render.dataset.manifest import MANIFEST, SHARD_DIR, new_manifest, read_manifest, write_manifest
-from msps_render.errors import InputError, Interrupted
+from msps_render.errors import InputError, Interrupted, brief
 from msps_render.scene.materials import material_pool, pool_difference
 from msps_render.config_io import apply_overrides
 from msps_render.pipeline.config import (DatasetConfig, _qualify, config_hash, config_json, validate_config)
@@ -133,7 +133,7 @@ def _on_sigterm(signum, frame):
 def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, scheduler: str | None = None,
                    resume: bool = False, force: bool = False, variant: str | None = None,
                    threads: int | None = None, progress: bool = True, recycle_after: int | None = None,
-                   max_tasks_per_child: int | None = None) -> dict:
+                   max_tasks_per_child: int | None = None, space_check: bool = True) -> dict:
     """Render (or finish) the dataset `cfg` into `out`. Returns the final manifest.
 
     Order (docs/reliability.md): validate every input, check `out` (a directory
@@ -141,6 +141,7 @@ def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, schedu
     workers, keep every finished shard in the manifest, delete temporaries and
     raise `Interrupted`; any other failure before the first shard leaves nothing.
     `recycle_after`: replace a local worker after that many shards (None: never).
+    `space_check`: refuse (warn when tight) before rendering when the shards will not fit (`space.py`).
     """
     recycle_after = recycle_after if recycle_after is not None else max_tasks_per_child  # old name
     out = Path(out).expanduser().absolute()  # Dask workers resolve relative paths in their own cwd
@@ -155,7 +156,8 @@ def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, schedu
         try:
             return _render_locked(RenderJob(cfg=cfg, out=out, tasks=tasks, variant=variant, workers=workers,
                                             scheduler=scheduler, resume=resume, force=force, threads=threads,
-                                            progress=progress, recycle_after=recycle_after))
+                                            progress=progress, recycle_after=recycle_after,
+                                            space_check=space_check))
         finally:
             if created:  # still locked: another render cannot have started writing into it yet
                 remove_if_empty(out)
@@ -188,12 +190,13 @@ class RenderJob:
     threads: int | None = None
     progress: bool = True
     recycle_after: int | None = None
+    space_check: bool = True  # refuse (warn when tight) when the shards will not fit (`space.py`)
 
 
 def _render_locked(job: RenderJob) -> dict:
     cfg, out, tasks, variant, workers, scheduler = (job.cfg, job.out, job.tasks, job.variant, job.workers,
                                                     job.scheduler)
-    force = job.force
+    force, threads = job.force, job.threads
     h = config_hash(cfg)
     existing = read_manifest(out)
     versions = _versions(variant)
@@ -220,6 +223,8 @@ def _render_locked(job: RenderJob) -> dict:
                 raise InputError(out, f"--resume refused: the measured materials found here differ from those "
                                       f"its {n} shards drew from ({why}); use the same MSPS_MERL_DIR / brdf/ "
                                       f"files, or {_force_deletes(out, n)}")
+    if job.space_check:
+        _check_space(cfg, out, tasks, existing, force, h, variant, threads)
     if existing is not None and (force or existing.get("config_hash") != h or not existing.get("shards")):
         remove_dataset(out)  # only the toolkit's own files
         existing = None
@@ -298,6 +303,30 @@ def _render_locked(job: RenderJob) -> dict:
     return manifest
 
 
+def _check_space(cfg, out: Path, tasks, existing: dict | None, force: bool, h: str, variant: str,
+                 threads: int | None) -> None:
+    """Refuse before rendering when the shards still to render will not fit under `out` (counting the
+    old shards this render deletes first); warn when they take most of the room."""
+    import sys
+
+    from msps_render.pipeline.space import check_space, space_line
+
+    keep = existing is not None and not force and existing.get("config_hash") == h
+    todo = len(tasks) - (len(existing.get("shards") or {}) if keep else 0)
+    reclaim = 0 if keep else sum(p.stat().st_size for p in (out / SHARD_DIR).glob("shard-*.h5"))
+    try:
+        check = check_space(cfg, tasks, todo, out, variant, threads, reclaim)
+    except Exception as e:  # noqa: BLE001 - advice only: a probe that fails (a full /tmp) must not stop the render
+        print(f"warning: {out}: free space not checked ({type(e).__name__}: {brief(str(e), 100)})", file=sys.stderr)
+        return
+    if not check.fits:
+        raise InputError(out, f"not enough free space: {space_line(check)}; make room, choose another --out, "
+                              "or --no-space-check to render anyway (a full disk then stops it cleanly and "
+                              "--resume finishes it)")
+    if check.tight:
+        print(f"warning: {out}: {space_line(check)}; the disk may fill up before the end", file=sys.stderr)
+
+
 def zero_patch_cause(cfg: DatasetConfig) -> str:
     """Why frames give no patch: the patch grid against the frame size and the coverage threshold."""
     p, c = cfg.dataset.patches, cfg.scene.camera
@@ -336,14 +365,20 @@ def _write_card(out: Path) -> None:
 
 
 def _cleanup_failed(out: Path, manifest: dict) -> None:
-    """After an error: no temporaries; with no shard rendered, no manifest and no shards/ either."""
+    """After an error: no temporaries; with no shard rendered, no manifest and no shards/ either.
+    Where the manifest cannot be written (the disk is still full), the one on disk stays (written
+    atomically after every shard) and the shards it does not record go: disk == manifest, and the
+    error that stopped the render is the one reported."""
     remove_temporaries(out)
+    try:
+        if manifest["shards"]:
+            write_manifest(out, manifest)
+        else:
+            (out / MANIFEST).unlink(missing_ok=True)
+            remove_if_empty(out / SHARD_DIR)
+    except OSError:
+        manifest = read_manifest(out) or {"shards": {}}
     remove_unrecorded(out, manifest)
-    if manifest["shards"]:
-        write_manifest(out, manifest)
-    else:
-        (out / MANIFEST).unlink(missing_ok=True)
-        remove_if_empty(out / SHARD_DIR)
 
 
 @contextlib.contextmanager
