@@ -13,10 +13,11 @@ from msps_render.calibration import Rig, geometry_warnings, load_calibration_fil
 from msps_render.errors import InputError
 from msps_render.io.images import read_image, write_png
 from msps_render.models.runner import (LAMBERTIAN, NET, Method, checkpoint_predictor, default_checkpoint,  # noqa: F401
-                                       label, lambertian_predictor, run, trace)
+                                       Memo, label, lambertian_predictor, run, trace)
 from msps_render.models.steps import DEFAULT_PHOTOS, STEPS, Steps
 from msps_render.models.tiles import predict_image  # noqa: F401 (re-exported: callers import it from here)
 from msps_render.preview import normal_to_rgb8
+from msps_render.progress import Bar
 
 
 def load_calibration(path: str | Path | None, light_dirs: str | None, crosstalk: str | None):
@@ -61,6 +62,7 @@ def read_inputs(image_path: str | Path, mask_path: str | Path | None,
     return img, mk
 
 
+LARGE_PIXELS = 512 * 512  # from this size on `msps predict` shows progress (steps, network passes, tiles)
 OUT_SUFFIXES = (".npy", ".png")  # `--out x.png` and `--out x` both mean the stem x; other dots stay
 PANEL_COL_IN, PANEL_H_IN, PANEL_CBAR_IN, PANEL_DPI = 3.0, 3.4, 0.7, 100  # panel layout (inches, dpi)
 ERROR_MAX_DEG = 45.0  # top of the error map's colour scale (larger errors saturate)
@@ -193,8 +195,8 @@ def predict_main(image: str | Path, out: str | Path, method: Method | None = Non
     elif p.network and not rig.assumed:
         for w in geometry_warnings(rig.light_dirs, rig.crosstalk, p.train_lights):
             warn(w)
-    with stage_progress(progress, f"{Path(image).name}: {method.name}", img.shape[:2], method) as tick:
-        state = run(method, img, mk, rig, tick)
+    with Bar(progress and mk.size >= LARGE_PIXELS) as bar:  # per step and network pass: large images take minutes
+        state = run(method, img, mk, rig, Memo(bar.task(f"{Path(image).name}: {method.name}", None)))
     n = state.normals
     paths = out_paths(out)
     paths["npy"].parent.mkdir(parents=True, exist_ok=True)

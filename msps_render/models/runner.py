@@ -41,15 +41,16 @@ class Predictor:
     def network(self) -> bool:
         return self.kind == NET
 
-    def image(self, image: np.ndarray, mask: np.ndarray, rig: Rig) -> np.ndarray:
-        """(H, W, 3) normals of a whole image (network: overlapping 40x40 tiles, blended)."""
+    def image(self, image: np.ndarray, mask: np.ndarray, rig: Rig, on_batch=None) -> np.ndarray:
+        """(H, W, 3) normals of a whole image (network: overlapping 40x40 tiles, blended; `on_batch(done,
+        total)` hears the tiles)."""
         if not self.network:
             from msps_render.models.baseline import lambertian_ps
 
             return lambertian_ps(image, rig.light_dirs, rig.crosstalk, mask)
         from msps_render.models.tiles import predict_image
 
-        return predict_image(self.model, image, mask, rig=rig.matrix)
+        return predict_image(self.model, image, mask, rig=rig.matrix, on_batch=on_batch)
 
     def patches(self, images: np.ndarray, masks: np.ndarray, rigs: list[Rig], matrices) -> np.ndarray:
         """(B, P, P, 3) normals of patches (B, P, P, 3); `matrices`: the batch's (B, 3, 3) rig matrices
@@ -173,11 +174,25 @@ def _digest(*arrays: np.ndarray) -> tuple:
 
 class Memo:
     """What several methods on one image (or one batch of patches) share: image-stage states per
-    steps prefix, and predictor outputs per exact input.  One per image; dropped with it."""
+    steps prefix, and predictor outputs per exact input.  One per image; dropped with it.
+    `task`: a progress line (msps_render.progress) that hears each step and each predictor pass's tiles."""
 
-    def __init__(self):
+    def __init__(self, task=None):
         self.states: dict[tuple, State] = {}
         self.outputs: dict[tuple, np.ndarray] = {}
+        self.task, self._what, self._passes = task, "", 0
+
+    def note(self, what: str) -> None:
+        if self.task:
+            self._what = what
+            self.task.describe(what)
+
+    def tiles(self, done: int, total: int) -> None:
+        if self.task:
+            if done <= 0:
+                self._passes += 1
+                self.task.describe(f"{self._what}: network pass {self._passes}, tiles")
+            self.task.set(done, total)
 
     def call(self, key: tuple, fn, *arrays: np.ndarray) -> np.ndarray:
         k = key + _digest(*arrays)
@@ -195,18 +210,22 @@ def run(method: Method, image: np.ndarray, mask: np.ndarray, rig: Rig, memo: Mem
     if s is None:
         s = State(image, np.asarray(mask, bool), rig, image)
         for step in method.steps.stage("image"):
+            memo.note(f"{method.name}: {step.name}")
             s = step.apply(s)
         memo.states[key] = s
     s = State(s.source, s.mask, s.rig, s.image, s.scale,
-              lambda x, mk: memo.call(("image", id(p)), lambda a, b: p.image(a, b, rig), x, mk), None, s.fits)
+              lambda x, mk: memo.call(("image", id(p)), lambda a, b: p.image(a, b, rig, memo.tiles), x, mk),
+              None, s.fits)
     for step in method.steps.stage("predictor"):
         s = step.apply(s)
+    memo.note(method.name)
     loops = method.steps.stage("predict")
     if not loops:
         s = State(s.source, s.mask, s.rig, s.image, s.scale, s.predict, s.predict(s.image, s.mask), s.fits)
     for step in loops:
         s = step.apply(s)
     for step in method.steps.stage("normals"):
+        memo.note(f"{method.name}: {step.name}")
         s = step.apply(s)
     return s
 

@@ -18,9 +18,10 @@ def _window(size: int) -> np.ndarray:
 
 
 def predict_image(model, image: np.ndarray, mask: np.ndarray, tile: int = 40, stride: int = 20,
-                  batch: int = 64, rig: np.ndarray | None = None) -> np.ndarray:
+                  batch: int = 64, rig: np.ndarray | None = None, on_batch=None) -> np.ndarray:
     """Normals (H, W, 3) of an image (H, W, 3) with a dual-cue model; 0 outside the mask.
-    `rig` = crosstalk @ light_dirs (3, 3): needed by a network with the Lambertian cue."""
+    `rig` = crosstalk @ light_dirs (3, 3): needed by a network with the Lambertian cue.
+    `on_batch(done, total)`: told the tiles done, 0 first (a progress line on large images)."""
     import torch
 
     rig_t = None if rig is None else torch.as_tensor(np.asarray(rig), dtype=torch.float32)
@@ -34,6 +35,8 @@ def predict_image(model, image: np.ndarray, mask: np.ndarray, tile: int = 40, st
     wsum = np.zeros((H, W), np.float32)
     win = _window(tile)
     model.eval()
+    if on_batch:
+        on_batch(0, len(keep))
     with torch.no_grad():
         for i in range(0, len(keep), batch):
             yx = keep[i:i + batch]
@@ -45,6 +48,8 @@ def predict_image(model, image: np.ndarray, mask: np.ndarray, tile: int = 40, st
             for (y, x_), p in zip(yx, pred):
                 acc[y:y + tile, x_:x_ + tile] += p * win[..., None]
                 wsum[y:y + tile, x_:x_ + tile] += win
+            if on_batch:
+                on_batch(min(i + batch, len(keep)), len(keep))
     n = acc / np.maximum(np.linalg.norm(acc, axis=-1, keepdims=True), 1e-12)
     n[~m] = 0.0
     return n
