@@ -254,10 +254,10 @@ def evaluate(data: str | Path, out: str | Path, methods: list[Method] | None = N
         for cond in conditions:
             frames = _frames(data, cond, why)
             ds = PatchDataset(data, condition=cond, verify=verify)
-            rows, errs, fits = frame_pass(frames, methods, bar.task(f"{cond}: frames", len(frames)))
+            rows, errs, fits = frame_pass(frames, methods, bar.task(f"{cond or data.name}: frames", len(frames)))
             n_patches = len(ds) if not max_patches else min(len(ds), max_patches)
             sc = _score_patches(ds, methods, fits if why else None, max_patches,
-                                bar.task(f"{cond}: patches", n_patches))
+                                bar.task(f"{cond or data.name}: patches", n_patches))
             stats, units_p = _patch_stats(cond, methods, sc)
             units[cond] = {"patches": units_p, "frames": rows if frames else []}
             for n in names:
