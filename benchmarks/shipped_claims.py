@@ -25,7 +25,8 @@ CLAIMS = [("unseen-test", "net"), ("unseen-test-grey", "net"), ("unseen-test-gre
 
 
 def main(argv=None) -> int:
-    from msps_render.testing import frame_bootstrap, frame_errors
+    from msps_render.models.evaluate import frame_errors
+    from msps_render.testing import frame_bootstrap
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", required=True, help="NAME=CHECKPOINT")

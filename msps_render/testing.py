@@ -88,24 +88,3 @@ def corrupt_patch_chunk(shard, chunk: int) -> None:
         f.seek(info.byte_offset + info.size // 2)
         f.write(bytes(16))
 
-
-def frame_errors(data, checkpoint, steps: str = "none") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per whole frame of a dataset: summed angular error of the checkpoint through `steps` (e.g.
-    "selfcal+netcal+refine"), of calibrated Lambertian PS on the image as rendered, and the pixel count.
-    What the shipped model's claims are measured with (tests/test_shipped_targets.py,
-    benchmarks/shipped_claims.py): the same runner as `msps eval`."""
-    from msps_render.calibration import Rig
-    from msps_render.data import iter_frames
-    from msps_render.models.metrics import angular_error_deg
-    from msps_render.models.runner import Memo, Method, checkpoint_predictor, lambertian_predictor, run
-    from msps_render.models.steps import Steps
-
-    net = Method("net", checkpoint_predictor(checkpoint), Steps.parse(steps))
-    base = Method("lambertian", lambertian_predictor())
-    out = []
-    for fr in iter_frames(data):
-        m, memo = fr.mask.astype(bool), Memo()
-        errs = [angular_error_deg(run(k, fr.image, m, Rig.of(fr), memo).normals[m], fr.normal[m]).sum()
-                for k in (net, base)]
-        out.append(errs + [m.sum()])
-    return tuple(np.array(c, np.float64) for c in zip(*out)) if out else (np.zeros(0),) * 3

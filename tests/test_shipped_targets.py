@@ -47,7 +47,8 @@ def test_shipped_model_meets_its_claims_on_unseen_objects(preset, claim, margin,
     from msps_render.models.predict import default_checkpoint
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.run import render_dataset
-    from msps_render.testing import frame_bootstrap, frame_errors
+    from msps_render.models.evaluate import frame_errors
+    from msps_render.testing import frame_bootstrap
 
     monkeypatch.chdir(ROOT)  # the presets name the meshes as ../shared/data/meshes/..., from the checkout
     cfg = load_config(preset)
@@ -84,7 +85,8 @@ def test_shipped_model_with_selfcal_and_refine_meets_its_claims(preset, claim, m
     from msps_render.models.predict import default_checkpoint
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.run import render_dataset
-    from msps_render.testing import frame_bootstrap, frame_errors
+    from msps_render.models.evaluate import frame_errors
+    from msps_render.testing import frame_bootstrap
 
     monkeypatch.chdir(ROOT)
     render_dataset(load_config(preset), tmp_path / preset, progress=False, variant=rgb_variant)

@@ -12,6 +12,7 @@ import numpy as np
 from msps_render.calibration import Rig, geometry_warnings, load_calibration_file, parse_calibration
 from msps_render.errors import InputError
 from msps_render.io.images import read_image, write_png
+from msps_render.io.normals import read_normal_map as read_normal_gt
 from msps_render.models.runner import (LAMBERTIAN, NET, Method, checkpoint_predictor, default_checkpoint,  # noqa: F401
                                        Memo, label, lambertian_predictor, run, trace)
 from msps_render.models.steps import DEFAULT_PHOTOS, STEPS, Steps
@@ -76,39 +77,6 @@ def out_paths(out: str | Path) -> dict[str, Path]:
         s = s[:-len(Path(s).suffix)]
     return {"npy": Path(s + ".npy"), "png": Path(s + ".png"), "panel": Path(s + "-panel.png"),
             "metrics": Path(s + "-metrics.json")}
-
-
-def read_normal_gt(path: str | Path, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """(unit normals (H, W, 3), valid (H, W)) of a ground-truth normal map.
-
-    .npy: signed normals.  PNG (8/16 bit) and other images: (n+1)/2-encoded.  EXR/HDR: signed (as
-    `msps` writes normal.exr) unless no value is negative, then (n+1)/2-encoded.  Zero normals (and,
-    once decoded, vectors far from unit length: black or mid-grey backgrounds) are invalid."""
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "ground-truth normal map not found")
-    suffix = p.suffix.lower()
-    if suffix == ".npy":
-        n = np.load(p).astype(np.float64)
-    elif suffix == ".png":
-        from msps_render.io.png16 import read_png
-
-        a = read_png(p)
-        n = a.astype(np.float64) / np.iinfo(a.dtype).max * 2.0 - 1.0 if a.ndim == 3 else a
-    else:
-        n = read_image(p).astype(np.float64)
-        if suffix not in (".exr", ".hdr") or n[..., :3].min() >= 0:
-            n = n * 2.0 - 1.0
-    if n.ndim != 3 or n.shape[2] < 3:
-        raise InputError(p, f"expected an (H, W, 3) normal map, got shape {list(n.shape)}")
-    n = n[..., :3]
-    if n.shape[:2] != tuple(shape):
-        raise InputError(p, f"normal map is {n.shape[1]}x{n.shape[0]}, the image is {shape[1]}x{shape[0]}")
-    n = np.where(np.isfinite(n).all(-1, keepdims=True), n, 0.0)
-    length = np.linalg.norm(n, axis=-1)
-    valid = (length > 0.5) & (length < 1.5)
-    n = np.where(valid[..., None], n / np.maximum(length, 1e-12)[..., None], 0.0)
-    return n, valid
 
 
 def write_panel(path: Path, image: np.ndarray, mask: np.ndarray, normal: np.ndarray, title: str,

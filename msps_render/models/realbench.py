@@ -86,38 +86,15 @@ def object_name(folder: str | Path) -> str:
 
 
 def read_normal_gt(root: Path, shape: tuple[int, int]) -> tuple[np.ndarray, Path]:
-    """Ground-truth normals (H, W, 3) from Normal_gt.mat (key `Normal_gt`), else Normal_gt.png
-    (8/16-bit, n = v / max * 2 - 1; a decoded vector shorter than 0.5, i.e. mid grey, is the zero
-    vector, which 8-bit codes cannot hold exactly).  Non-finite vectors become zero (left out)."""
+    """Ground-truth normals (H, W, 3) of a capture folder: Normal_gt.mat, else Normal_gt.png, read by the
+    rule `msps predict --normal-gt` uses (`io.normals.read_normal_map`); no normal: the zero vector."""
+    from msps_render.io.normals import read_normal_map
+
     mat, png = root / GT_NAMES[0], root / GT_NAMES[1]
-    if mat.is_file():
-        import scipy.io
-
-        try:
-            d = scipy.io.loadmat(str(mat))
-        except Exception as e:  # scipy raises ValueError/TypeError/MatReadError on foreign files
-            why = str(e).splitlines()[0][:100] if str(e) else type(e).__name__
-            raise InputError(mat, f"cannot read the .mat file ({why})") from None
-        if "Normal_gt" not in d:
-            keys = sorted(k for k in d if not k.startswith("__"))
-            raise InputError(mat, f"no variable 'Normal_gt' (has: {', '.join(keys) or 'none'})")
-        n, src = np.asarray(d["Normal_gt"], dtype=np.float64), mat
-    elif png.is_file():
-        from msps_render.io.png16 import read_png
-
-        a = read_png(png)
-        if a.ndim != 3 or a.shape[2] < 3:
-            raise InputError(png, f"expected an RGB normal map, got shape {list(a.shape)}")
-        n = a[..., :3].astype(np.float64) / np.iinfo(a.dtype).max * 2.0 - 1.0
-        n[np.linalg.norm(n, axis=-1) < 0.5] = 0.0
-        src = png
-    else:
+    src = mat if mat.is_file() else png if png.is_file() else None
+    if src is None:
         raise InputError(mat, "missing, and no Normal_gt.png either: the benchmark needs ground-truth normals")
-    if n.shape != (*shape, 3):
-        raise InputError(src, f"ground truth has shape {list(n.shape)}; the images are {shape[1]}x{shape[0]} "
-                              f"(need {shape[0]}x{shape[1]}x3)")
-    n = np.where(np.isfinite(n).all(-1, keepdims=True), n, 0.0)
-    return n, src
+    return read_normal_map(src, shape)[0], src
 
 
 def parse_skip(skips, names: list[str]) -> dict[str, list[str]]:
