@@ -156,16 +156,24 @@ def _whole_frame_step(methods: list[Method]) -> str | None:
     return None
 
 
-def _frames(data: Path, cond: str, why: str | None) -> list:
+def _has_frames(data: Path, cond: str, why: str | None) -> bool:
+    """Whether the condition's whole frames are stored; `why` (a step that fits them) makes it required."""
     from msps_render.data import iter_frames
 
     try:
-        return list(iter_frames(data, condition=cond))
+        next(iter(iter_frames(data, condition=cond)), None)
+        return True
     except InputError:
         if why:
             raise InputError(data, f"{why} fits each object on its whole frame; this dataset has no "
                                    "whole frames (render a preset with store_frames = true)") from None
-        return []
+        return False
+
+
+def _frames(data: Path, cond: str) -> list:
+    from msps_render.data import iter_frames
+
+    return list(iter_frames(data, condition=cond))
 
 
 def _score_patches(ds, methods: list[Method], fits: dict | None, max_patches: int | None, bar=None) -> dict:
@@ -269,10 +277,11 @@ def evaluate(data: str | Path, out: str | Path, methods: list[Method] | None = N
     why = _whole_frame_step(methods)
     per = {n: {"conditions": {}} for n in names}
     units: dict = {}  # condition -> patches: (unit keys, (M, U) error sums, (U,) pixels); frames: rows
+    sets = {c: PatchDataset(data, condition=c, verify=verify) for c in conditions}  # every check before any work
+    stored = {c: _has_frames(data, c, why) for c in conditions}
     with Bar(progress) as bar:
         for cond in conditions:
-            frames = _frames(data, cond, why)
-            ds = PatchDataset(data, condition=cond, verify=verify)
+            ds, frames = sets[cond], _frames(data, cond) if stored[cond] else []
             rows, errs, fits = frame_pass(frames, methods, bar.task(f"{cond or data.name}: frames", len(frames)))
             n_patches = len(ds) if not max_patches else min(len(ds), max_patches)
             sc = _score_patches(ds, methods, fits if why else None, max_patches,

@@ -177,6 +177,15 @@ def _stats(err: np.ndarray) -> dict:
     return {"mae_deg": float(err.mean()), "median_deg": float(np.median(err)), "n_pixels": int(err.size)}
 
 
+def check_sizes(objects: list[RealObject], methods: list[Method]) -> None:
+    """A network needs at least one 40x40 tile: refuse smaller composed images before any work."""
+    if any(m.predictor.network for m in methods):
+        for o in objects:
+            if min(o.mask.shape) < 40:
+                raise InputError(o.root, f"composed image is {o.mask.shape[1]}x{o.mask.shape[0]}; "
+                                         "the network needs at least 40x40")
+
+
 def evaluate_real(objects: list[RealObject], methods: list[Method], warn=None, bar=None) -> RealBench:
     """Every method on every object: per object MAE/median over the scored pixels, the mean over objects
     (and of the per-object ratio to Lambertian), and the pixel-pooled statistics.  Methods on one object
@@ -184,6 +193,7 @@ def evaluate_real(objects: list[RealObject], methods: list[Method], warn=None, b
     from msps_render.models.metrics import angular_error_deg
 
     warn = warn or (lambda msg: None)
+    check_sizes(objects, methods)
     per: dict = {}
     normals: dict = {}
     errors: dict = {}
@@ -198,9 +208,6 @@ def evaluate_real(objects: list[RealObject], methods: list[Method], warn=None, b
                 warned.add(id(m.predictor))
                 for w in warnings(m.predictor, o):
                     warn(w)
-            if m.predictor.network and min(o.mask.shape) < 40:
-                raise InputError(o.root, f"composed image is {o.mask.shape[1]}x{o.mask.shape[0]}; "
-                                         "the network needs at least 40x40")
             n = np.asarray(run(m, o.image, o.mask, o.rig, memo).normals, np.float64)
             e = np.full(o.mask.shape, np.nan)
             e[v] = angular_error_deg(n[v], o.normal_gt[v])
@@ -365,8 +372,10 @@ def run_bench_real(folders, out: str | Path, checkpoints=(), columns: list[Steps
     columns = columns or [DEFAULT_PHOTOS]
     methods = make_methods(resolve_predictors(checkpoints, [NET, LAMBERTIAN]), columns)
     objects = [load_real_object(f, slant_deg, tilts_deg, M, skips[n], srgb, name=n) for f, n in zip(folders, names)]
-    for c in columns:  # every step's needs, before any work
-        c.check(True, objects[0].rig)
+    for c in columns:  # every step's needs, before any work (and any progress line)
+        for o in objects:
+            c.check(True, o.rig)
+    check_sizes(objects, methods)
     with Bar(progress) as bar:
         bench = evaluate_real(objects, methods, warn, bar.task("objects", len(objects)))
     settings = {"slant_deg": float(slant_deg), "tilts_deg": [float(t) for t in tilts_deg],
