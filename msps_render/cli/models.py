@@ -9,18 +9,27 @@ import typer
 
 from msps_render.cli.app import app, clean_errors
 from msps_render.io.png16 import PNG_RULE
+from msps_render.models.steps import DEFAULT_PHOTOS, DEFAULT_RENDERED
 
 PNG_HELP = f"force PNG values to be read as linear radiance / as sRGB-encoded. Default: {PNG_RULE}"
 
 # Test-time steps (models/steps.py): `--steps selfcal+netcal+refine` (or `none`); repeatable where it adds
 # comparison columns (eval, bench-real).  The old per-step flags stay, hidden, for one release: they are
 # mapped onto Steps in ONE place (`steps.from_flags`).
-STEP_NAMES = "selfcal, segments, netcal, mirror, refine"
-STEPS_COLUMNS = typer.Option([], "--steps", metavar="STEPS", help="test-time steps, e.g. selfcal+netcal+refine "
-                             f"or none ({STEP_NAMES}; docs/recipes.md); repeat to compare: every method is "
-                             "scored under each (a column NAME+STEPS each). Default: the raw network")
-STEPS_ONE = typer.Option(None, "--steps", metavar="STEPS", help="test-time steps applied in order, e.g. "
-                         f"selfcal+netcal+refine or none ({STEP_NAMES}; docs/recipes.md). Default: the raw network")
+def _steps_option(columns: bool, default):
+    """The --steps option: repeatable where it adds comparison columns; its default named from the registry."""
+    from msps_render.models.steps import STEPS
+
+    names = ", ".join(STEPS)
+    default = f"{default}" + ("" if default.names else " (the raw network)")
+    if columns:
+        return typer.Option([], "--steps", metavar="STEPS", help=f"test-time steps, e.g. selfcal+netcal+refine or "
+                            f"none ({names}; docs/recipes.md); repeat to compare: every method is scored under "
+                            f"each (a column NAME+STEPS each). Default: {default}")
+    return typer.Option(None, "--steps", metavar="STEPS", help="test-time steps applied in order, e.g. "
+                        f"selfcal+netcal+refine or none ({names}; docs/recipes.md). Default: {default}")
+
+
 OLD_SELFCAL = typer.Option(False, "--selfcal", hidden=True)
 OLD_SEGMENTS = typer.Option(False, "--segments", hidden=True)
 OLD_NETCAL = typer.Option(False, "--netcal", hidden=True)
@@ -78,7 +87,7 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
                                               "repeatable: --method lambertian beside --checkpoint compares "
                                               "both (default: net)"),
              max_patches: Optional[int] = typer.Option(None, help="limit per condition"),
-             steps: List[str] = STEPS_COLUMNS,
+             steps: List[str] = _steps_option(True, DEFAULT_RENDERED),
              quiet: bool = typer.Option(False, help="no progress lines"),
              selfcal: bool = OLD_SELFCAL, refine: bool = OLD_REFINE, mirror: bool = OLD_MIRROR,
              segments: bool = OLD_SEGMENTS, netcal: bool = OLD_NETCAL):
@@ -87,7 +96,6 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
     error_hist.png, per_object.csv/.png (frames stored), robustness.png (sweeps)."""
     from msps_render.models.evaluate import evaluate, resolve_methods
     from msps_render.models.report import summary_lines
-    from msps_render.models.steps import DEFAULT_RENDERED
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out, "report")
@@ -119,14 +127,13 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
                                                          "signed EXR too); zero normals are left out. Adds "
                                                          "the truth and the error map to the panel and writes "
                                                          "OUT-metrics.json"),
-                steps: Optional[str] = STEPS_ONE,
+                steps: Optional[str] = _steps_option(False, DEFAULT_PHOTOS),
                 quiet: bool = typer.Option(False, help="no progress lines"),
                 selfcal: bool = OLD_SELFCAL, refine: bool = OLD_REFINE, mirror: bool = OLD_MIRROR,
                 segments: bool = OLD_SEGMENTS, netcal: bool = OLD_NETCAL):
     """Normal map of a whole image (overlapping 40x40 tiles, blended) or by the Lambertian baseline,
     with a panel PNG (input, prediction, and with --normal-gt the truth and the angular error)."""
     from msps_render.models.predict import load_rig, out_paths, predict_main, predict_method
-    from msps_render.models.steps import DEFAULT_PHOTOS
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out.parent)
@@ -165,7 +172,7 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
                    srgb: bool = typer.Option(False, "--srgb", help="PNG photos are sRGB-encoded (default: "
                                              "linear, as raw captures)"),
                    threads: Optional[int] = typer.Option(None, help="torch CPU threads"),
-                   steps: List[str] = STEPS_COLUMNS,
+                   steps: List[str] = _steps_option(True, DEFAULT_PHOTOS),
                    quiet: bool = typer.Option(False, help="no progress lines"),
                    selfcal: bool = OLD_SELFCAL, refine: bool = OLD_REFINE, mirror: bool = OLD_MIRROR,
                    segments: bool = OLD_SEGMENTS, netcal: bool = OLD_NETCAL):
@@ -178,7 +185,6 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
     from msps_render.errors import InputError
     from msps_render.io.staging import check_new_out
     from msps_render.models.realbench import run_bench_real, summary_table
-    from msps_render.models.steps import DEFAULT_PHOTOS
 
     check_new_out(out)
     columns = _steps(steps, True, DEFAULT_PHOTOS, selfcal=selfcal, segments=segments, netcal=netcal,
