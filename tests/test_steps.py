@@ -113,3 +113,19 @@ def test_predict_steps_none_is_the_raw_network(tmp_path):
         outs[name] = np.load(tmp_path / f"{name}.npy")
     np.testing.assert_array_equal(outs["plain"], outs["none"])
     np.testing.assert_array_equal(outs["plain"], outs["sc"])  # a flat grey image: selfcal keeps it as it is
+
+
+def test_eval_steps_columns_equal_the_old_flags(tmp_path):
+    """`--steps none --steps selfcal` gives the columns `--selfcal` gave, with the same numbers."""
+    from cli_helpers import render_tiny
+    from test_selfcal import COLOUR_SET
+
+    render_tiny(COLOUR_SET, tmp_path)
+    got = {}
+    for name, args in (("steps", ["--steps", "none", "--steps", "selfcal"]), ("flag", ["--selfcal"])):
+        r = cli("eval", "--data", tmp_path / "ds", "--out", tmp_path / name, "--method", "lambertian", *args)
+        assert r.returncode == 0, r.stderr
+        got[name] = json.loads((tmp_path / name / "metrics.json").read_text())
+    assert list(got["steps"]["methods"]) == list(got["flag"]["methods"]) == ["lambertian", "lambertian+selfcal"]
+    assert got["steps"]["table"] == got["flag"]["table"]
+    assert got["steps"]["methods"]["lambertian+selfcal"]["steps"] == "selfcal"
