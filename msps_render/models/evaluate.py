@@ -193,12 +193,15 @@ def _score_patches(ds, methods: list[Method], fits: dict | None, max_patches: in
         bfits = None if fits is None else [fits[(ds.shards[s][0].name, f)] for s, f in keys]
         for k, px in zip(keys, mk[:, 0].sum((1, 2))):
             upix[k] += float(px)
-        memo = Memo()
+        memo, scored = Memo(), {}
         for j, m in enumerate(methods):
             p = patch_normals(m, j, b, bfits, memo)
-            e = angular_error_deg(p, g)
+            if id(p) not in scored:  # columns whose normals are the very same array share their scores
+                scored[id(p)] = (p, angular_error_deg(p, g),
+                                 _ssim_masked(p.transpose(0, 3, 1, 2), g.transpose(0, 3, 1, 2), mk))
+            e, ssim = scored[id(p)][1:]
             errs[m.name].append(e[mk[:, 0] > 0])
-            ssims[m.name] += _ssim_masked(p.transpose(0, 3, 1, 2), g.transpose(0, 3, 1, 2), mk) * len(p)
+            ssims[m.name] += ssim * len(p)
             for k, s in zip(keys, (e * mk[:, 0]).sum((1, 2))):
                 usum[k][j] += float(s)
         seen += len(g)

@@ -86,11 +86,13 @@ def _refine_frame(s: State) -> refine.ObjectAlbedo:
 def _refine_patches(images: np.ndarray, normals: np.ndarray, masks: np.ndarray, rigs: list[Rig],
                     albedos: list) -> np.ndarray:
     out = normals.copy()
+    changed = False
     for x, n, mk, r, a, o in zip(images, normals, masks, rigs, albedos, out):
         px, n3, n2 = refine.refine_pixels(x[mk], n[mk], r.light_dirs, r.crosstalk, a)
         if n3 or n2:
             o[mk] = px
-    return out
+            changed = True
+    return out if changed else normals  # unchanged: the same array, so its scores are shared too
 
 
 def _ratio(v) -> str:
