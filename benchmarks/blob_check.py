@@ -15,6 +15,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", action="append", required=True, help="NAME=PATH")
     args = ap.parse_args(argv)
+    from msps_render.calibration import Rig
     from msps_render.models.baseline import lambertian_ps
     from msps_render.models.checkpoint import load_checkpoint
     from msps_render.models.metrics import angular_error_deg
@@ -30,7 +31,7 @@ def main(argv=None) -> None:
     models = {name: load_checkpoint(path, expect_preset="cpu")[0]
               for name, path in (m.split("=", 1) for m in args.model)}
     for name, model in models.items():
-        e = [angular_error_deg(predict_image(model, f.image, f.mask, rig=f.crosstalk @ f.light_dirs)[f.mask], f.normal[f.mask]).mean() for f in frames]
+        e = [angular_error_deg(predict_image(model, f.image, f.mask, rig=Rig.of(f).matrix)[f.mask], f.normal[f.mask]).mean() for f in frames]
         print(f"{name} {np.mean(e):.2f}")
     b = [angular_error_deg(lambertian_ps(f.image, f.light_dirs, f.crosstalk)[f.mask], f.normal[f.mask]).mean()
          for f in frames]

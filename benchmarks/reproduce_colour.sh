@@ -131,7 +131,7 @@ A7="$RUNS/lambert/last.pt"
 for set in val-frames val-frames-grey val-frames-colour; do
   $MSPS render $set --out "$DATA/$set" --workers 2 $R
 done
-[ -f "$RUNS/8-valsweep.json" ] || $PY benchmarks/refine_sweep.py --data "$DATA/val-frames" --data "$DATA/val-frames-grey" \
+[ -f "$RUNS/8-valsweep.json" ] || $PY experiments/refine_sweep.py --data "$DATA/val-frames" --data "$DATA/val-frames-grey" \
   --data "$DATA/val-frames-colour" --model models/dualcue-cpu-v0.4.pt --out "$RUNS/8-valsweep.json"
 [ -f "$RUNS/report-refine/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --refine \
   --data "$DATA/unseen-test-grey" --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" \
@@ -141,7 +141,7 @@ done
   --selfcal --refine --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --checkpoint 6a=models/dualcue-cpu-colour.pt
 [ -f "$RUNS/eval-refine-env/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
   --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --method lambertian --out "$RUNS/eval-refine-env"
-[ -f "$RUNS/assumed-rig/assumed_rig.json" ] || $PY benchmarks/assumed_rig.py --data "$DATA/unseen-rig-crosstalk" \
+[ -f "$RUNS/assumed-rig/assumed_rig.json" ] || $PY experiments/assumed_rig.py --data "$DATA/unseen-rig-crosstalk" \
   --data "$DATA/unseen-rig-jitter" --model v0.4=models/dualcue-cpu-v0.4.pt --out "$RUNS/assumed-rig"
 # stage 7b (measured, not shipped): 7a plus net.cue_gain=10 (rule in runs/7b-decision.txt), 45-minute budget
 resume=""; [ -f "$RUNS/lambert-gain/last.pt" ] && resume="--resume"
@@ -157,9 +157,9 @@ $MSPS train cpu --threads 2 --data "$DATA/train-colour-mixed" --data "$DATA/trai
 # 8. stage 9 (docs/history.md "Stage 9"): the self-calibration's one-albedo share chosen on the validation
 #    frames (rule in runs/9-decision.txt; the stage 8 reports above, re-run with this code, already include it),
 #    the bound on a local colour estimate, and the mirror ensemble (rule in runs/9b-decision.txt)
-[ -f "$RUNS/9-valsweep.json" ] || $PY benchmarks/selfcal_share_sweep.py --data "$DATA/val-frames" \
+[ -f "$RUNS/9-valsweep.json" ] || $PY experiments/selfcal_share_sweep.py --data "$DATA/val-frames" \
   --data "$DATA/val-frames-grey" --data "$DATA/val-frames-colour" --model models/dualcue-cpu-v0.4.pt --out "$RUNS/9-valsweep.json"
-[ -f "$RUNS/chroma-oracle.json" ] || $PY benchmarks/chroma_oracle.py --data "$DATA/unseen-test-smooth" \
+[ -f "$RUNS/chroma-oracle.json" ] || $PY experiments/chroma_oracle.py --data "$DATA/unseen-test-smooth" \
   --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test-grey" \
   --model models/dualcue-cpu-v0.4.pt --out "$RUNS/chroma-oracle.json"
 [ -f "$RUNS/9b-val/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --mirror --refine --data "$DATA/val-frames" \
@@ -225,7 +225,7 @@ for m in v0.4=models/dualcue-cpu-v0.4.pt 11a="$RUNS/albedo-lamb/last.pt" 11b="$R
   evaluate_candidate "$m"
 done
 # the field self-calibration probe (a negative result: the unit-norm constraint cannot pin a colour field)
-[ -f "$RUNS/field-selfcal.json" ] || $PY benchmarks/field_selfcal_probe.py --data "$DATA/unseen-test-smooth" \
+[ -f "$RUNS/field-selfcal.json" ] || $PY experiments/field_selfcal_probe.py --data "$DATA/unseen-test-smooth" \
   --data "$DATA/unseen-test-patches" --out "$RUNS/field-selfcal.json"
 # stage 11d and its control (no tint): v0.4 + 4,000 steps of its own last-stage diet (train-grey-30 + blobs-48)
 for share in 0.25 0.0; do
@@ -266,11 +266,11 @@ done
   --init models/dualcue-cpu-v0.4.pt
 # the segment-wise self-calibration: its bound with the TRUE regions (test ground truth; chooses nothing),
 # thresholds on validation frames only, then the test sets
-$PY benchmarks/segment_oracle.py --data "$DATA/unseen-test-patches" --model models/dualcue-cpu-v0.4.pt
+$PY experiments/segment_oracle.py --data "$DATA/unseen-test-patches" --model models/dualcue-cpu-v0.4.pt
 for p in val-frames-texture val-frames-grey val-frames-colour; do
   $MSPS render "$p" --out "$DATA/$p" --workers 2 --resume --quiet
 done
-[ -f "$RUNS/segment-sweep.json" ] || $PY benchmarks/segment_sweep.py --data "$DATA/val-frames-texture" \
+[ -f "$RUNS/segment-sweep.json" ] || $PY experiments/segment_sweep.py --data "$DATA/val-frames-texture" \
   --data "$DATA/val-frames-grey" --data "$DATA/val-frames-colour" --model models/dualcue-cpu-v0.4.pt \
   --out "$RUNS/segment-sweep.json"
 # tests_and_diligent TAG NAME=CKPT FLAGS...: the six unseen test sets (runs/report-TAG-NAME) and DiLiGenT
@@ -292,7 +292,7 @@ done
 # ---- stage 13 (docs/history.md "Stage 13") ------------------------------------------------------------
 # the colour read off the network's own normals (--netcal): settings on validation frames only, then the tests
 $MSPS render val-frames --out "$DATA/val-frames" --workers 2 --resume --quiet
-[ -f "$RUNS/netcal-sweep.json" ] || $PY benchmarks/netcal_sweep.py --data "$DATA/val-frames" \
+[ -f "$RUNS/netcal-sweep.json" ] || $PY experiments/netcal_sweep.py --data "$DATA/val-frames" \
   --data "$DATA/val-frames-grey" --data "$DATA/val-frames-colour" --data "$DATA/val-frames-texture" \
   --model models/dualcue-cpu.pt --out "$RUNS/netcal-sweep.json"
 for m in v05=models/dualcue-cpu.pt v04=models/dualcue-cpu-v0.4.pt; do

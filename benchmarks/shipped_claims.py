@@ -24,39 +24,8 @@ CLAIMS = [("unseen-test", "net"), ("unseen-test-grey", "net"), ("unseen-test-gre
           ("unseen-test-colour", "selfcal+netcal+refine"), ("unseen-test-texture", "selfcal+netcal+refine")]
 
 
-def per_frame_errors(data: Path, model, pipeline: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per frame: summed angular error of the model through `pipeline` ("net", "selfcal+refine",
-    "selfcal+netcal+refine"), of calibrated Lambertian PS on the raw image, pixels."""
-    from msps_render.data import iter_frames
-    from msps_render.models.baseline import lambertian_ps
-    from msps_render.models.metrics import angular_error_deg
-    from msps_render.models.netcal import calibrate
-    from msps_render.models.predict import predict_image
-    from msps_render.models.refine import refine_normals
-    from msps_render.models.selfcal import self_calibrated
-
-    net, base, count = [], [], []
-    for fr in iter_frames(data):
-        m = fr.mask.astype(bool)
-        if pipeline != "net":
-            rig = fr.crosstalk @ fr.light_dirs
-            img = self_calibrated(fr.image, m, fr.light_dirs, fr.crosstalk)
-            if "netcal" in pipeline:
-                n, img, _ = calibrate(lambda x: predict_image(model, x, m, rig=rig), img, m, rig)
-            else:
-                n = predict_image(model, img, m, rig=rig)
-            n, _ = refine_normals(img, m, n, fr.light_dirs, fr.crosstalk)
-        else:
-            n = predict_image(model, fr.image, fr.mask)
-        net.append(angular_error_deg(n[m], fr.normal[m]).sum())
-        base.append(angular_error_deg(lambertian_ps(fr.image, fr.light_dirs, fr.crosstalk, m)[m],
-                                      fr.normal[m]).sum())
-        count.append(m.sum())
-    return np.array(net, np.float64), np.array(base, np.float64), np.array(count, np.float64)
-
-
 def main(argv=None) -> int:
-    from msps_render.models.checkpoint import load_checkpoint
+    from msps_render.models.evaluate import frame_errors
     from msps_render.testing import frame_bootstrap
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -65,10 +34,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path)
     a = ap.parse_args(argv)
     name, ckpt = a.model.split("=", 1)
-    model = load_checkpoint(Path(ckpt))[0]
     rows = []
     for preset, sr in CLAIMS:
-        net, base, count = per_frame_errors(a.data_root / preset, model, sr)
+        net, base, count = frame_errors(a.data_root / preset, Path(ckpt), "none" if sr == "net" else sr)
         sr = "" if sr == "net" else sr
         ratio = float(net.sum() / base.sum())
         lo, hi = frame_bootstrap(net, base)

@@ -25,29 +25,22 @@ from pathlib import Path
 import numpy as np
 
 
-def _predictors(models: list[str], selfcal: bool = False, refine: bool = False, mirror: bool = False,
-                segments: bool = False, netcal: bool = False):
-    """NAME=PATH checkpoints and the baseline, as `msps eval` loads them (msps_render.models.evaluate);
-    with `selfcal`, each again after the albedo-colour self-calibration (NAME+selfcal); with `refine`,
-    each network again with the Lambertian refinement (NAME+refine, NAME+selfcal+refine); with `segments`,
-    each after the segment-wise self-calibration too (NAME+selfcal+segments); with `netcal`, each network
-    after selfcal and the colour read off its own normals (NAME+selfcal+netcal)."""
-    from msps_render.models.evaluate import (checkpoint_method, lambertian_method, with_mirror, with_refine,
-                                             with_netcal, with_segments, with_selfcal)
+def _methods(models: list[str], steps: list[str], **old: bool):
+    """NAME=PATH checkpoints and the baseline, each under every --steps value (or the old step flags), as
+    `msps eval` builds its columns (msps_render.models.runner.methods)."""
+    from msps_render.models.runner import checkpoint_predictor, lambertian_predictor, methods
+    from msps_render.models.steps import Steps, from_flags
 
-    methods = [checkpoint_method(path, name) for name, path in (spec.split("=", 1) for spec in models)]
-    methods.append(lambertian_method())
-    methods = with_selfcal(methods) if selfcal else methods
-    methods = with_segments(methods) if segments else methods  # twins of the methods without selfcal only
-    methods = with_netcal(methods) if netcal else methods  # ... of the networks without selfcal only
-    methods = with_mirror(methods) if mirror else methods
-    return with_refine(methods) if refine else methods
+    preds = [checkpoint_predictor(path, name) for name, path in (spec.split("=", 1) for spec in models)]
+    return methods(preds + [lambertian_predictor()], from_flags(True, **old) or [Steps.parse(s) for s in steps]
+                   or [Steps()])
 
 
 def report(data: Path, methods: list) -> tuple[dict, list]:
+    from msps_render.calibration import Rig
     from msps_render.data import iter_frames
-    from msps_render.models.evaluate import frame_predictions
     from msps_render.models.metrics import angular_error_deg
+    from msps_render.models.runner import Memo, run
 
     preds = [m.name for m in methods]
 
@@ -56,7 +49,9 @@ def report(data: Path, methods: list) -> tuple[dict, list]:
     shown: dict[str, dict] = {}
     for fr in iter_frames(data):
         m = fr.mask.astype(bool)
-        for name, n in zip(preds, frame_predictions(methods, fr)):
+        memo = Memo()
+        for meth in methods:
+            name, n = meth.name, run(meth, fr.image, fr.mask, Rig.of(fr), memo).normals
             e = angular_error_deg(n[m], fr.normal[m])
             per_obj[name][fr.object].append(float(e.mean()))
             pooled[name].append(e)
@@ -117,19 +112,14 @@ def main() -> None:
     ap.add_argument("--data", action="append", required=True, type=Path)
     ap.add_argument("--model", action="append", default=[], help="NAME=checkpoint.pt")
     ap.add_argument("--out", required=True, type=Path)
-    ap.add_argument("--selfcal", action="store_true", help="also every method after the albedo-colour "
-                    "self-calibration (msps_render/models/selfcal.py)")
-    ap.add_argument("--refine", action="store_true", help="also every network with the Lambertian refinement "
-                    "after it (msps_render/models/refine.py)")
-    ap.add_argument("--segments", action="store_true", help="also every method after the object-level and the "
-                    "segment-wise albedo self-calibration (msps_render/models/segments.py)")
-    ap.add_argument("--netcal", action="store_true", help="also every network after the object-level self-"
-                    "calibration and the colour read off its own normals (msps_render/models/netcal.py)")
-    ap.add_argument("--mirror", action="store_true", help="also every network averaged with its prediction of "
-                    "the mirrored image (msps_render/models/symmetry.py)")
+    ap.add_argument("--steps", action="append", default=[], help="test-time steps, e.g. selfcal+netcal+refine "
+                    "or none; repeat to compare (as `msps eval --steps`)")
+    for name in ("selfcal", "segments", "netcal", "mirror", "refine"):  # the old flags, as `msps eval` keeps them
+        ap.add_argument(f"--{name}", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
-    methods = _predictors(a.model, a.selfcal, a.refine, a.mirror, a.segments, a.netcal)
+    methods = _methods(a.model, a.steps, selfcal=a.selfcal, segments=a.segments, netcal=a.netcal, mirror=a.mirror,
+                       refine=a.refine)
     all_res, md = [], []
     for d in a.data:
         res, shown = report(d, methods)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -262,3 +263,32 @@ def geometry_warnings(light_dirs, crosstalk, trained: dict | None) -> list[str]:
         out.append("the network takes no light input: it assumes the trained geometry "
                    "(try --method lambertian, or train on data rendered with these lights)")
     return out
+
+
+# --------------------------------------------------------- the rig as one value
+@dataclass(frozen=True, eq=False)
+class Rig:
+    """The three lights of one image: directions (rows toward the lights, camera frame) and crosstalk.
+    Why one value: the test-time steps, the baseline and a `lambert_cue` network all read a pixel as
+    c = diag(rho) A n with A = crosstalk @ light_dirs (`matrix`); spelling A at each call site let
+    the two factors drift apart.  `assumed`: no calibration was given, the paper's rig stands in."""
+
+    light_dirs: np.ndarray  # (3, 3)
+    crosstalk: np.ndarray  # (3, 3): M[i][k], channel i's response to light k
+    assumed: bool = False
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """A = crosstalk @ light_dirs (3, 3): the rig's linear map from a normal to a white pixel."""
+        return np.asarray(self.crosstalk) @ np.asarray(self.light_dirs)
+
+    @classmethod
+    def of(cls, obj) -> "Rig":
+        """The rig of anything that carries `light_dirs` and `crosstalk` (a frame, a real capture)."""
+        return cls(obj.light_dirs, obj.crosstalk)
+
+    @classmethod
+    def paper(cls) -> "Rig":
+        """The paper's rig (slant 30 deg, tilts 0/120/240, crosstalk 0.92/0.04), assumed."""
+        L, M = parse_calibration({}, "the paper's rig")
+        return cls(L, M, assumed=True)

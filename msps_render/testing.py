@@ -87,3 +87,4 @@ def corrupt_patch_chunk(shard, chunk: int) -> None:
     with open(shard, "r+b") as f:
         f.seek(info.byte_offset + info.size // 2)
         f.write(bytes(16))
+

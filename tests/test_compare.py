@@ -217,13 +217,13 @@ def test_predict_panel_names_and_mae(setup, tmp_path):
     assert np.asarray(Image.open(tmp_path / "pred-v0.1-panel.png").convert("L")).std() > 10
     # the same truth as a 16-bit (n+1)/2 PNG (mid grey = no normal): the same pixels, MAE within quantisation
     png16.write_png(tmp_path / "gt.png", png16.encode_normal(gt, np.linalg.norm(gt, axis=-1) > 0))
-    files = P.predict_main(tmp_path / "img.npy", tmp_path / "p2", checkpoint=setup["a"], mask=tmp_path / "mask.npy",
-                           normal_gt=tmp_path / "gt.png")
+    files = P.predict_main(tmp_path / "img.npy", tmp_path / "p2", P.predict_method(checkpoint=setup["a"]),
+                           mask=tmp_path / "mask.npy", normal_gt=tmp_path / "gt.png")
     m2 = json.loads((tmp_path / "p2-metrics.json").read_text())
     assert m2["n_pixels"] == m["n_pixels"] and m2["mae_deg"] == pytest.approx(m["mae_deg"], abs=0.01)
     assert [f.name for f in files] == ["p2.npy", "p2.png", "p2-panel.png", "p2-metrics.json"]
     # no truth: input and prediction only, no metrics
-    P.predict_main(tmp_path / "img.npy", tmp_path / "lamb.png", method="lambertian", warn=lambda w: None)
+    P.predict_main(tmp_path / "img.npy", tmp_path / "lamb.png", P.predict_method("lambertian"), warn=lambda w: None)
     assert (tmp_path / "lamb.npy").is_file() and not (tmp_path / "lamb-metrics.json").exists()
     assert Image.open(tmp_path / "lamb-panel.png").size == (round(P.PANEL_DPI * 2 * P.PANEL_COL_IN),
                                                            round(P.PANEL_DPI * P.PANEL_H_IN))
@@ -232,6 +232,6 @@ def test_predict_panel_names_and_mae(setup, tmp_path):
 
     with pytest.raises(InputError, match="normal map is 8x8"):
         np.save(tmp_path / "small.npy", np.zeros((8, 8, 3)))
-        P.predict_main(tmp_path / "img.npy", tmp_path / "x", method="lambertian", normal_gt=tmp_path / "small.npy",
-                       warn=lambda w: None)
+        P.predict_main(tmp_path / "img.npy", tmp_path / "x", P.predict_method("lambertian"),
+                       normal_gt=tmp_path / "small.npy", warn=lambda w: None)
     assert not (tmp_path / "x.npy").exists()  # failed before writing anything

@@ -36,7 +36,7 @@ def test_compose_then_lambertian_predict_recovers_the_sphere(tmp_path, crosstalk
     from msps_render.compose import compose_capture
     from msps_render.models.baseline import unshadowed
     from msps_render.models.metrics import angular_error_deg
-    from msps_render.models.predict import predict_main
+    from msps_render.models.predict import load_rig, predict_main, predict_method
 
     cap = make_capture(tmp_path / "cap")
     r = compose_capture(tmp_path / "cap", tmp_path / "out", crosstalk=crosstalk)
@@ -46,8 +46,8 @@ def test_compose_then_lambertian_predict_recovers_the_sphere(tmp_path, crosstalk
     # the calibration holds the chosen lights' real directions (to the 6 decimals of the text file)
     assert np.abs(L - cap["L"][NEAR_PAPER]).max() < 2e-6
     warns = []
-    predict_main(tmp_path / "out" / "image.exr", tmp_path / "pred", method="lambertian",
-                 mask=tmp_path / "out" / "mask.png", calibration=tmp_path / "out" / "calibration.json",
+    predict_main(tmp_path / "out" / "image.exr", tmp_path / "pred", predict_method("lambertian"),
+                 load_rig(tmp_path / "out" / "calibration.json"), mask=tmp_path / "out" / "mask.png",
                  warn=warns.append)
     assert warns == []
     n = np.load(tmp_path / "pred.npy")
@@ -64,7 +64,7 @@ def test_compose_then_lambertian_predict_recovers_the_sphere(tmp_path, crosstalk
 
 
 def test_compose_cli_and_predict_warns_about_trained_geometry(tmp_path):
-    from msps_render.models.predict import predict_main
+    from msps_render.models.predict import load_rig, predict_main, predict_method
 
     make_capture(tmp_path / "cap", with_filenames=False)  # images found by name
     r = cli("compose", tmp_path / "cap", "--out", tmp_path / "o45", "--slant", "45", "--tilts", "0,120,240")
@@ -81,16 +81,16 @@ def test_compose_cli_and_predict_warns_about_trained_geometry(tmp_path):
     # the default v0.2 was trained at 20-40 deg, so 45 deg is within its tolerance (checked below)
     v01 = default_checkpoint().parent / "dualcue-cpu-v0.1.pt"
     warns = []
-    predict_main(tmp_path / "o45" / "image.exr", tmp_path / "p45", checkpoint=v01, mask=tmp_path / "o45" / "mask.png",
-                 calibration=tmp_path / "o45" / "calibration.json", warn=warns.append)
+    predict_main(tmp_path / "o45" / "image.exr", tmp_path / "p45", predict_method(checkpoint=v01),
+                 load_rig(tmp_path / "o45" / "calibration.json"), mask=tmp_path / "o45" / "mask.png", warn=warns.append)
     assert any("slant 45.0, 45.0, 45.0 deg differs from the 30 deg" in w for w in warns), warns
     assert any("takes no light input" in w for w in warns)
     # the paper layout: no warning
     r = cli("compose", tmp_path / "cap", "--out", tmp_path / "o30")
     assert r.returncode == 0, r.stderr
     warns = []
-    predict_main(tmp_path / "o30" / "image.exr", tmp_path / "p30", mask=tmp_path / "o30" / "mask.png",
-                 calibration=tmp_path / "o30" / "calibration.json", warn=warns.append)
+    predict_main(tmp_path / "o30" / "image.exr", tmp_path / "p30", rig=load_rig(tmp_path / "o30" / "calibration.json"),
+                 mask=tmp_path / "o30" / "mask.png", warn=warns.append)
     assert warns == []
     # the CLI prints it (and still writes the prediction)
     r = cli("predict", tmp_path / "o45" / "image.exr", "--mask", tmp_path / "o45" / "mask.png", "--calibration",
@@ -100,8 +100,8 @@ def test_compose_cli_and_predict_warns_about_trained_geometry(tmp_path):
     # the default network records its training range (slant 20-40 deg): 45 is within 5 deg of it,
     # 55 is not
     warns = []
-    predict_main(tmp_path / "o45" / "image.exr", tmp_path / "d45", mask=tmp_path / "o45" / "mask.png",
-                 calibration=tmp_path / "o45" / "calibration.json", warn=warns.append)
+    predict_main(tmp_path / "o45" / "image.exr", tmp_path / "d45", rig=load_rig(tmp_path / "o45" / "calibration.json"),
+                 mask=tmp_path / "o45" / "mask.png", warn=warns.append)
     assert warns == [], warns
     from msps_render.calibration import geometry_warnings
     from msps_render.models.checkpoint import load_checkpoint
@@ -195,7 +195,7 @@ def test_trained_geometry_comes_from_the_checkpoint_or_the_model_card(tmp_path):
     from msps_render.calibration import geometry_warnings
     from msps_render.dataset import training_lights
     from msps_render.models.net import DualCueNet
-    from msps_render.models.predict import predict_main
+    from msps_render.models.predict import load_rig, predict_main, predict_method
     from msps_render.models.presets import load_model_config
     from msps_render.models.checkpoint import save_checkpoint
     from msps_render.dataset import write_manifest
@@ -227,8 +227,8 @@ def test_trained_geometry_comes_from_the_checkpoint_or_the_model_card(tmp_path):
                          {"train_lights": {**tl, "slant_deg": [40.0, 40.0], "source": "training data manifests"}})
     np.save(tmp_path / "img.npy", np.ones((48, 48, 3), np.float32))
     warns = []
-    predict_main(tmp_path / "img.npy", tmp_path / "p", checkpoint=ck, light_dirs=json.dumps(L30.tolist()),
-                 warn=warns.append)
+    predict_main(tmp_path / "img.npy", tmp_path / "p", predict_method(checkpoint=ck),
+                 load_rig(light_dirs=json.dumps(L30.tolist())), warn=warns.append)
     assert any("differs from the 40 deg the network was trained for" in w for w in warns), warns
 
 

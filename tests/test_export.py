@@ -216,7 +216,7 @@ def test_png16_export_feeds_predict_with_linear(dataset, tmp_path):
     """`msps predict --linear` reads the 16-bit export as radiance: same normals as from the EXR."""
     from msps_render.export import export_dataset
     from msps_render.models.metrics import angular_error_deg
-    from msps_render.models.predict import predict_main, read_inputs
+    from msps_render.models.predict import load_rig, predict_main, predict_method, read_inputs
 
     png = export_dataset(dataset, "png16", tmp_path / "png")
     exr = export_dataset(dataset, "exr", tmp_path / "exr")
@@ -226,8 +226,8 @@ def test_png16_export_feeds_predict_with_linear(dataset, tmp_path):
     s = png["frames"][0]["png_scale"]
     assert np.abs(img / s - ref).max() <= STEP16 / s + 1e-7  # all 16 bits kept (Pillow keeps 8)
     for d, name in ((dp, "image.png"), (de, "image.exr")):
-        predict_main(d / name, tmp_path / d.parent.name, method="lambertian", mask=d / "mask.png",
-                     calibration=d / "calibration.json", linear=True, warn=lambda m: None)
+        predict_main(d / name, tmp_path / d.parent.name, predict_method("lambertian"), load_rig(d / "calibration.json"),
+                     mask=d / "mask.png", linear=True, warn=lambda m: None)
     a, b = np.load(tmp_path / "png.npy"), np.load(tmp_path / "exr.npy")
     m = np.linalg.norm(b, axis=-1) > 0
     # same linear image up to 16-bit quantisation (and an exposure Lambertian PS ignores)

@@ -243,7 +243,7 @@ def _interrupt_after(cfg, data, out, steps):
 
 
 def test_bad_inputs(tiny_dataset, tmp_path):
-    from msps_render.models.predict import predict_main
+    from msps_render.models.predict import predict_main, predict_method
     from msps_render.models.checkpoint import load_checkpoint, save_checkpoint
 
     # checkpoint of another preset
@@ -257,10 +257,10 @@ def test_bad_inputs(tiny_dataset, tmp_path):
     # image with the wrong channel count / too small
     np.save(tmp_path / "two.npy", np.ones((48, 48, 2), np.float32))
     with pytest.raises(InputError, match="3-channel"):
-        predict_main(tmp_path / "two.npy", tmp_path / "o", checkpoint=p)
+        predict_main(tmp_path / "two.npy", tmp_path / "o", predict_method(checkpoint=p))
     np.save(tmp_path / "small.npy", np.ones((20, 20, 3), np.float32))
     with pytest.raises(InputError, match="at least 40x40"):
-        predict_main(tmp_path / "small.npy", tmp_path / "o", checkpoint=p)
+        predict_main(tmp_path / "small.npy", tmp_path / "o", predict_method(checkpoint=p))
     with pytest.raises(ValueError, match="shape"):
         DualCueNet(cfg.net_config())(torch.rand(1, 4, 40, 40))
     # a dataset that fails verification

@@ -158,21 +158,27 @@ def test_eval_netcal_frames_and_patches(tmp_path):
     assert nc["patches"]["mae_deg"] < plain["patches"]["mae_deg"] - 3.0
 
 
-def test_eval_reuses_the_frame_loop_exactly(tmp_path):
-    """`msps eval` runs each frame's loop once (`frame_fits`) and reuses it for the frame's own row: the
-    reused image and normals are the ones a fresh run of the loop gives (the network is deterministic)."""
+def test_eval_reuses_the_frame_loop_exactly(tmp_path, monkeypatch):
+    """`msps eval` runs every method on a frame with one `Memo`: the loop's passes are shared with the
+    plain column and the refined twin, and every column equals a fresh run of its method (the network is
+    deterministic)."""
+    from msps_render.calibration import Rig
     from msps_render.data import iter_frames
-    from msps_render.models.evaluate import frame_fits, frame_predictions, resolve_methods
+    import msps_render.models.tiles as tiles_mod
+    from msps_render.models.evaluate import resolve_methods
+    from msps_render.models.runner import Memo, run
+    from msps_render.models.steps import from_flags
 
     render_tiny(COLOUR_SET, tmp_path)
-    methods = resolve_methods(methods=["net"], netcal=True, refine=True)
-    nets = [m for m in methods if m.netcal]
-    assert [m.name for m in nets] == ["net+selfcal+netcal", "net+selfcal+netcal+refine"]
-    frames = list(iter_frames(tmp_path / "ds"))
-    fits = frame_fits(tmp_path / "ds", None, netcal_methods=nets)  # None: every condition
-    assert len({id(f.netcal[nets[0].netcal_key]) for f in fits.values()}) == len(frames)
-    for fr in frames:
-        fresh = frame_predictions(methods, fr)
-        reused = frame_predictions(methods, fr, fits[(fr.shard, fr.index)])
-        for a, b in zip(fresh, reused):
-            np.testing.assert_allclose(a, b, atol=1e-6)
+    methods = resolve_methods(methods=["net"], columns=from_flags(True, netcal=True, refine=True))
+    assert [m.name for m in methods] == ["net", "net+selfcal+netcal", "net+refine", "net+selfcal+netcal+refine"]
+    calls = []
+    real = tiles_mod.predict_image
+    monkeypatch.setattr(tiles_mod, "predict_image", lambda *a, **k: calls.append(1) or real(*a, **k))
+    for fr in iter_frames(tmp_path / "ds"):
+        memo, rig = Memo(), Rig.of(fr)
+        calls.clear()
+        shared = [run(m, fr.image, fr.mask, rig, memo).normals for m in methods]
+        assert len(calls) <= 3  # the image as rendered, after selfcal, after the loop's colour: once each
+        for m, got in zip(methods, shared):
+            np.testing.assert_array_equal(got, run(m, fr.image, fr.mask, rig).normals)

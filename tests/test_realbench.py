@@ -288,3 +288,28 @@ def test_segments_columns(tmp_path):
     assert res["settings"]["segments"] is True
     a = res["objects"]["a"]["methods"]
     assert all(np.isfinite(a[m]["mae_deg"]) for m in res["methods"])
+
+
+def test_bench_and_predict_read_a_normal_map_alike(tmp_path):
+    """One rule (io/normals.py): `bench-real`'s Normal_gt.png and `predict --normal-gt` give the same unit
+    normals, and a white pixel (|n| = 1.73 once decoded) is no normal to either (it was one to the bench)."""
+    from msps_render.io.png16 import write_png
+    from msps_render.models.predict import read_normal_gt as predict_gt
+    from msps_render.models.realbench import read_normal_gt as bench_gt
+
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(8, 8, 3))
+    n[..., 2] = np.abs(n[..., 2])
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    code = np.round((n + 1) / 2 * 65535).astype(np.uint16)
+    code[0, 0] = 65535  # white
+    code[0, 1] = 32768  # mid grey: the zero vector
+    write_png(tmp_path / "Normal_gt.png", code)
+    a, src = bench_gt(tmp_path, (8, 8))
+    b, valid = predict_gt(tmp_path / "Normal_gt.png", (8, 8))
+    assert src.name == "Normal_gt.png"
+    np.testing.assert_array_equal(a, b)
+    assert not valid[0, 0] and not valid[0, 1] and valid.sum() == 62
+    assert np.all(a[0, :2] == 0)
+    np.testing.assert_allclose(np.linalg.norm(a[valid], axis=-1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(a[valid], n[valid], atol=1e-4)  # 16-bit quantisation

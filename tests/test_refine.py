@@ -208,25 +208,27 @@ def test_predict_refine_of_the_baseline_is_refused(tmp_path):
 
 
 def test_refine_columns_reuse_their_base_prediction(monkeypatch):
-    """`frame_predictions` runs the network once per model x selfcal x mirror, and each column equals what
-    the method alone gives (`Method.frame`)."""
-    from types import SimpleNamespace
-
-    import msps_render.models.predict as predict_mod
-    from msps_render.models.evaluate import (checkpoint_method, frame_predictions, with_mirror, with_refine,
-                                             with_selfcal)
-    from msps_render.models.predict import default_checkpoint
+    """Methods run on one frame with one `Memo` run the network once per distinct input (plain, selfcal,
+    and each one's mirror image), and each column equals what the method alone gives (a fresh run)."""
+    from msps_render.calibration import Rig
+    import msps_render.models.tiles as tiles_mod
+    from msps_render.models.runner import Memo, checkpoint_predictor, default_checkpoint, methods as make_methods, run
+    from msps_render.models.steps import from_flags
 
     n, mask = sphere(64)
     colour = np.stack([render(n, mask, a)[..., 0] for a in (0.9, 0.3, 0.1)], -1)  # one saturated colour
-    fr = SimpleNamespace(image=colour, mask=mask, light_dirs=L, crosstalk=M)
-    methods = with_refine(with_mirror(with_selfcal([checkpoint_method(default_checkpoint(), "v")])))
+    rig = Rig(L, M)
+    methods = make_methods([checkpoint_predictor(default_checkpoint(), "v")],
+                           from_flags(True, selfcal=True, mirror=True, refine=True))
     assert [m.name for m in methods] == ["v", "v+selfcal", "v+mirror", "v+selfcal+mirror", "v+refine",
                                          "v+selfcal+refine", "v+mirror+refine", "v+selfcal+mirror+refine"]
     calls = []
-    real = predict_mod.predict_image
-    monkeypatch.setattr(predict_mod, "predict_image", lambda *a, **k: calls.append(1) or real(*a, **k))
-    shared = frame_predictions(methods, fr)
-    assert len(calls) == 2 + 2 * 2  # plain and selfcal once each, their mirrored twins twice each
+    real = tiles_mod.predict_image
+    monkeypatch.setattr(tiles_mod, "predict_image", lambda *a, **k: calls.append(1) or real(*a, **k))
+    memo = Memo()
+    shared = [run(m, colour, mask, rig, memo).normals for m in methods]
+    # plain and selfcal once each; this sphere under the paper's rig is its own mirror image (the same
+    # bytes), so the mirrored inputs are not predicted again
+    assert len(calls) == 2
     for m, got in zip(methods, shared):
-        np.testing.assert_array_equal(got, m.frame(fr))
+        np.testing.assert_array_equal(got, run(m, colour, mask, rig).normals)

@@ -369,10 +369,10 @@ def test_atomic_write_fsyncs_the_directory(tmp_path, monkeypatch):
 
 def test_eval_metrics_json_is_written_atomically(width32, tmp_path, monkeypatch):
     """A write that dies half-way (disk full) leaves the previous metrics.json whole."""
-    from msps_render.models.evaluate import evaluate
+    from msps_render.models.evaluate import evaluate, resolve_methods
 
     out = tmp_path / "eval"
-    evaluate(width32[1], out, method="lambertian")
+    evaluate(width32[1], out, resolve_methods(methods=["lambertian"]))
     before = (out / "metrics.json").read_text()
     real = Path.write_text
 
@@ -384,7 +384,7 @@ def test_eval_metrics_json_is_written_atomically(width32, tmp_path, monkeypatch)
 
     monkeypatch.setattr(Path, "write_text", half_then_enospc)
     with pytest.raises(OSError):
-        evaluate(width32[1], out, method="lambertian")
+        evaluate(width32[1], out, resolve_methods(methods=["lambertian"]))
     monkeypatch.undo()
     assert (out / "metrics.json").read_text() == before
     assert not list(out.glob(".*.tmp"))

@@ -39,38 +39,21 @@ GREY_CLAIM, GREY_MARGIN = 0.99, 0.13
 UNSEEN_TARGET, GREY_TARGET = 0.7, 1.0
 
 
-def _per_frame_errors(data, model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per frame: summed angular error of the network, of the Lambertian baseline, pixel count."""
-    from msps_render.data import iter_frames
-    from msps_render.models.baseline import lambertian_ps
-    from msps_render.models.metrics import angular_error_deg
-    from msps_render.models.predict import predict_image
-
-    net, base, count = [], [], []
-    for fr in iter_frames(data):
-        m = fr.mask.astype(bool)
-        net.append(angular_error_deg(predict_image(model, fr.image, fr.mask)[m], fr.normal[m]).sum())
-        base.append(angular_error_deg(lambertian_ps(fr.image, fr.light_dirs, fr.crosstalk, fr.mask)[m],
-                                      fr.normal[m]).sum())
-        count.append(m.sum())
-    return np.array(net, np.float64), np.array(base, np.float64), np.array(count, np.float64)
-
-
 @pytest.mark.slow  # renders 56 frames of 256² path-traced: 672-711 s per set measured (2 busy cores)
 @pytest.mark.parametrize("preset,claim,margin,target", [("unseen-test", UNSEEN_CLAIM, UNSEEN_MARGIN, UNSEEN_TARGET),
                                                         ("unseen-test-grey", GREY_CLAIM, GREY_MARGIN, GREY_TARGET)])
 def test_shipped_model_meets_its_claims_on_unseen_objects(preset, claim, margin, target, shared_data, rgb_variant,
                                                           tmp_path, monkeypatch):
-    from msps_render.models.checkpoint import load_checkpoint
     from msps_render.models.predict import default_checkpoint
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.run import render_dataset
+    from msps_render.models.evaluate import frame_errors
     from msps_render.testing import frame_bootstrap
 
     monkeypatch.setenv("MSPS_TEST_DATA", str(shared_data))  # where the unseen-* presets read their meshes
     cfg = load_config(preset)
     render_dataset(cfg, tmp_path / preset, progress=False, variant=rgb_variant)
-    net, base, count = _per_frame_errors(tmp_path / preset, load_checkpoint(default_checkpoint())[0])
+    net, base, count = frame_errors(tmp_path / preset, default_checkpoint())
     assert len(net) == cfg.dataset.n_shards * cfg.dataset.frames_per_shard
     ratio = net.sum() / base.sum()
     lo, hi = frame_bootstrap(net, base)
@@ -99,34 +82,16 @@ NETCAL_CLAIMS = [("unseen-test-grey", 0.68, 0.12, 0.75), ("unseen-test-colour", 
                          [(*c, False) for c in REFINE_CLAIMS] + [(*c, True) for c in NETCAL_CLAIMS])
 def test_shipped_model_with_selfcal_and_refine_meets_its_claims(preset, claim, margin, target, netcal, shared_data,
                                                                 rgb_variant, tmp_path, monkeypatch):
-    from msps_render.data import iter_frames
-    from msps_render.models.baseline import lambertian_ps
-    from msps_render.models.checkpoint import load_checkpoint
-    from msps_render.models.metrics import angular_error_deg
-    from msps_render.models.netcal import calibrate
-    from msps_render.models.predict import default_checkpoint, predict_image
-    from msps_render.models.refine import refine_normals
-    from msps_render.models.selfcal import self_calibrated
+    from msps_render.models.predict import default_checkpoint
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.run import render_dataset
+    from msps_render.models.evaluate import frame_errors
     from msps_render.testing import frame_bootstrap
 
     monkeypatch.setenv("MSPS_TEST_DATA", str(shared_data))
     render_dataset(load_config(preset), tmp_path / preset, progress=False, variant=rgb_variant)
-    model = load_checkpoint(default_checkpoint())[0]
-    net, base = [], []
-    for fr in iter_frames(tmp_path / preset):
-        m = fr.mask.astype(bool)
-        rig = fr.crosstalk @ fr.light_dirs
-        img = self_calibrated(fr.image, m, fr.light_dirs, fr.crosstalk)
-        if netcal:
-            n, img, _ = calibrate(lambda x: predict_image(model, x, m, rig=rig), img, m, rig)
-        else:
-            n = predict_image(model, img, m, rig=rig)
-        n, _ = refine_normals(img, m, n, fr.light_dirs, fr.crosstalk)
-        net.append(angular_error_deg(n[m], fr.normal[m]).sum())
-        base.append(angular_error_deg(lambertian_ps(fr.image, fr.light_dirs, fr.crosstalk, m)[m], fr.normal[m]).sum())
-    net, base = np.array(net), np.array(base)
+    net, base, _ = frame_errors(tmp_path / preset, default_checkpoint(),
+                                "selfcal+netcal+refine" if netcal else "selfcal+refine")
     ratio = net.sum() / base.sum()
     lo, hi = frame_bootstrap(net, base)
     print(f"{preset} +selfcal{'+netcal' if netcal else ''}+refine: ratio {ratio:.4f}, 95% frame-bootstrap [{lo:.4f}, {hi:.4f}]")

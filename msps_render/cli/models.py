@@ -9,21 +9,43 @@ import typer
 
 from msps_render.cli.app import app, clean_errors
 from msps_render.io.png16 import PNG_RULE
+from msps_render.models.steps import DEFAULT_PHOTOS, DEFAULT_RENDERED
 
 PNG_HELP = f"force PNG values to be read as linear radiance / as sRGB-encoded. Default: {PNG_RULE}"
 
-# The extra columns `msps eval` and `msps bench-real` both offer: each flag adds a twin of every method
-# (`msps predict` has its own wording: there the flag changes the one prediction).
-ALSO_SELFCAL = typer.Option(False, "--selfcal", help="also score every method after the object-level albedo-colour "
-                            "self-calibration (a column NAME+selfcal each; models/selfcal.py, docs/appearance.md)")
-ALSO_REFINE = typer.Option(False, "--refine", help="also score every network with the Lambertian refinement after "
-                           "it (a column NAME+refine each; objects of one albedo only; models/refine.py)")
-ALSO_SEGMENTS = typer.Option(False, "--segments", help="also score every method after the object-level and then "
-                             "the segment-wise albedo self-calibration, which divides out each colour region of a "
-                             "textured object (a column NAME+selfcal+segments each; models/segments.py)")
-ALSO_NETCAL = typer.Option(False, "--netcal", help="also score every network after the object-level "
-                           "self-calibration and the albedo colour read off its own normals, predicted again "
-                           "(a column NAME+selfcal+netcal each; needs whole images; models/netcal.py)")
+# Test-time steps (models/steps.py): `--steps selfcal+netcal+refine` (or `none`); repeatable where it adds
+# comparison columns (eval, bench-real).  The old per-step flags stay, hidden, for one release: they are
+# mapped onto Steps in ONE place (`steps.from_flags`).
+def _steps_option(columns: bool, default):
+    """The --steps option: repeatable where it adds comparison columns; its default named from the registry."""
+    from msps_render.models.steps import STEPS
+
+    names = ", ".join(STEPS)
+    default = f"{default}" + ("" if default.names else " (the raw network)")
+    if columns:
+        return typer.Option([], "--steps", metavar="STEPS", help=f"test-time steps, e.g. selfcal+netcal+refine or "
+                            f"none ({names}; docs/recipes.md); repeat to compare: every method is scored under "
+                            f"each (a column NAME+STEPS each). Default: {default}")
+    return typer.Option(None, "--steps", metavar="STEPS", help="test-time steps applied in order, e.g. "
+                        f"selfcal+netcal+refine or none ({names}; docs/recipes.md). Default: {default}")
+
+
+OLD_SELFCAL = typer.Option(False, "--selfcal", hidden=True)
+OLD_SEGMENTS = typer.Option(False, "--segments", hidden=True)
+OLD_NETCAL = typer.Option(False, "--netcal", hidden=True)
+OLD_MIRROR = typer.Option(False, "--mirror", hidden=True)
+OLD_REFINE = typer.Option(False, "--refine", hidden=True)
+
+
+def _steps(given: list[str], columns: bool, default, **old: bool) -> list:
+    """--steps values (or the old flags) -> a list of Steps; nothing given: [default]."""
+    from msps_render.errors import InputError
+    from msps_render.models.steps import Steps, from_flags
+
+    aliased = from_flags(columns, **old)
+    if aliased and given:
+        raise InputError("--steps", "give --steps or the old step flags (--selfcal ...), not both")
+    return aliased or [Steps.parse(g) for g in given] or [default]
 
 
 @app.command("train")
@@ -70,13 +92,10 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
                                               "repeatable: --method lambertian beside --checkpoint compares "
                                               "both (default: net)"),
              max_patches: Optional[int] = typer.Option(None, help="limit per condition"),
-             selfcal: bool = ALSO_SELFCAL,
-             refine: bool = ALSO_REFINE,
-             mirror: bool = typer.Option(False, "--mirror", help="also score every network averaged with its "
-                                         "prediction of the mirrored image (NAME+mirror; rigs symmetric about an "
-                                         "image axis, as the paper's; models/symmetry.py)"),
-             segments: bool = ALSO_SEGMENTS,
-             netcal: bool = ALSO_NETCAL):
+             steps: List[str] = _steps_option(True, DEFAULT_RENDERED),
+             quiet: bool = typer.Option(False, help="no progress lines"),
+             selfcal: bool = OLD_SELFCAL, refine: bool = OLD_REFINE, mirror: bool = OLD_MIRROR,
+             segments: bool = OLD_SEGMENTS, netcal: bool = OLD_NETCAL):
     """Angular-error statistics, SSIM, per-object table (whole frames), robustness, for one method or
     several compared on the same frames: metrics.json, table.md (every method a column, 95 % CIs),
     error_hist.png, per_object.csv/.png (frames stored), robustness.png (sweeps)."""
@@ -85,8 +104,10 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out, "report")
-    r = evaluate(data, out, max_patches=max_patches, methods=resolve_methods(checkpoint, method, selfcal, refine, mirror,
-                                                                               segments, netcal))
+    columns = _steps(steps, True, DEFAULT_RENDERED, selfcal=selfcal, segments=segments, netcal=netcal,
+                     mirror=mirror, refine=refine)
+    r = evaluate(data, out, resolve_methods(checkpoint, method, columns), max_patches=max_patches,
+                 progress=not quiet)
     for line in summary_lines(r):
         typer.echo(line)
     typer.echo("wrote " + ", ".join(r["files"]))
@@ -111,31 +132,21 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
                                                          "signed EXR too); zero normals are left out. Adds "
                                                          "the truth and the error map to the panel and writes "
                                                          "OUT-metrics.json"),
-                selfcal: bool = typer.Option(False, "--selfcal", help="first divide out the object's albedo "
-                                             "colour when one uniform colour fits it clearly better than grey "
-                                             "(needs the rig: --calibration or the paper's lights; "
-                                             "models/selfcal.py)"),
-                refine: bool = typer.Option(False, "--refine", help="refine the network's normals by the "
-                                            "Lambertian closed form where the image agrees with it (objects "
-                                            "of one albedo; needs the rig; models/refine.py)"),
-                mirror: bool = typer.Option(False, "--mirror", help="average the network's prediction with its "
-                                            "prediction of the mirrored image (2x the time; needs a rig symmetric "
-                                            "about an image axis, as the paper's; models/symmetry.py)"),
-                segments: bool = typer.Option(False, "--segments", help="after --selfcal (implied), cut a "
-                                              "textured object at its colour edges and divide out each "
-                                              "region's own albedo (needs the rig; models/segments.py)"),
-                netcal: bool = typer.Option(False, "--netcal", help="after --selfcal (implied), read the "
-                                            "object's albedo colour off the network's own normals, divide it "
-                                            "out and predict again (2x the time; models/netcal.py)")):
+                steps: Optional[str] = _steps_option(False, DEFAULT_PHOTOS),
+                quiet: bool = typer.Option(False, help="no progress lines"),
+                selfcal: bool = OLD_SELFCAL, refine: bool = OLD_REFINE, mirror: bool = OLD_MIRROR,
+                segments: bool = OLD_SEGMENTS, netcal: bool = OLD_NETCAL):
     """Normal map of a whole image (overlapping 40x40 tiles, blended) or by the Lambertian baseline,
     with a panel PNG (input, prediction, and with --normal-gt the truth and the angular error)."""
-    from msps_render.models.predict import out_paths, predict_main
+    from msps_render.models.predict import load_rig, out_paths, predict_main, predict_method
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out.parent)
-    files = predict_main(image, out, checkpoint, method, mask, calibration, light_dirs, crosstalk,
-                         linear=linear, normal_gt=normal_gt, selfcal=selfcal,
-                         refine=refine, mirror=mirror, segments=segments, netcal=netcal)
+    (chosen,) = _steps([steps] if steps is not None else [], False, DEFAULT_PHOTOS, selfcal=selfcal,
+                       segments=segments, netcal=netcal, mirror=mirror, refine=refine)
+    rig = load_rig(calibration, light_dirs, crosstalk)
+    files = predict_main(image, out, predict_method(method, checkpoint, chosen), rig, mask=mask, linear=linear,
+                         normal_gt=normal_gt, progress=not quiet)
     if normal_gt:
         m = json.loads(out_paths(out)["metrics"].read_text())
         if m.get("n_pixels"):
@@ -165,10 +176,10 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
                                                   "OBJECT/FILE (one folder); repeatable"),
                    srgb: bool = typer.Option(False, "--srgb", help=f"PNG photos are sRGB-encoded. Default: {PNG_RULE}"),
                    threads: Optional[int] = typer.Option(None, help="torch CPU threads"),
-                   selfcal: bool = ALSO_SELFCAL,
-                   refine: bool = ALSO_REFINE,
-                   segments: bool = ALSO_SEGMENTS,
-                   netcal: bool = ALSO_NETCAL):
+                   steps: List[str] = _steps_option(True, DEFAULT_PHOTOS),
+                   quiet: bool = typer.Option(False, help="no progress lines"),
+                   selfcal: bool = OLD_SELFCAL, refine: bool = OLD_REFINE, mirror: bool = OLD_MIRROR,
+                   segments: bool = OLD_SEGMENTS, netcal: bool = OLD_NETCAL):
     """Score checkpoints and calibrated Lambertian PS on real captures (validation only: never train on
     real images).  Each folder is composed as `msps compose` does (the three captures nearest the
     layout, divided by light intensity, mixed by the crosstalk); the angular error is taken over the
@@ -180,6 +191,8 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
     from msps_render.models.realbench import run_bench_real, summary_table
 
     check_new_out(out)
+    columns = _steps(steps, True, DEFAULT_PHOTOS, selfcal=selfcal, segments=segments, netcal=netcal,
+                     mirror=mirror, refine=refine)
     try:
         t = [float(x) for x in tilts.split(",") if x.strip()]
     except ValueError:
@@ -189,9 +202,8 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
         import torch
 
         torch.set_num_threads(threads)
-    bench = run_bench_real(captures, out, checkpoint, slant, t, M, skip, srgb,
-                           warn=lambda w: typer.echo(f"warning: {w}", err=True), selfcal=selfcal,
-                           refine=refine, segments=segments, netcal=netcal)
+    bench = run_bench_real(captures, out, checkpoint, columns, slant_deg=slant, tilts_deg=t, crosstalk=M, skip=skip,
+                           srgb=srgb, warn=lambda w: typer.echo(f"warning: {w}", err=True), progress=not quiet)
     for line in summary_table(bench):
         typer.echo(line)
     typer.echo(f"wrote {out}/results.json, results.md, figure.png and per-object maps "

@@ -20,21 +20,22 @@ from __future__ import annotations
 import json
 import zlib
 from collections import defaultdict
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from msps_render.atomic import atomic_write
+from msps_render.calibration import Rig
 from msps_render.dataset import Manifest, load_manifest
 from msps_render.errors import InputError
-from msps_render.models.baseline import lambertian_ps
 from msps_render.models.metrics import angular_error_deg, error_stats
-from msps_render.models import netcal, refine, segments, selfcal, symmetry
 from msps_render.models.report import (PER_OBJECT_NOTE, error_histogram, per_object_detail, write_plots,
                                        write_tables)
-
-LAMBERTIAN = "lambertian"
+from msps_render.models.runner import LAMBERTIAN, Memo, Method, methods as make_methods, resolve_predictors, run
+from msps_render.models.steps import DEFAULT_RENDERED, STEPS, Steps
+from msps_render.progress import Bar
 FORMAT = 2  # metrics.json: "methods" + "table"; single-method runs also keep the format-1 keys at the top
 CI_LEVEL = 0.95
 N_BOOT = 2000
@@ -53,328 +54,191 @@ def _ssim_masked(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
     return float(masked_ssim(t(pred), t(gt), t(mask)))
 
 
-@dataclass
-class Method:
-    """One column of the comparison: the Lambertian baseline or a loaded checkpoint."""
-
-    name: str
-    kind: str  # "net" or "lambertian"
-    info: dict = field(default_factory=dict)
-    model: object = None
-    selfcal: bool = False  # divide out the frame's fitted albedo colour first (models/selfcal.py)
-    refine: bool = False  # refine the network's normals by the Lambertian closed form (models/refine.py)
-    mirror: bool = False  # average with the prediction of the mirrored image (models/symmetry.py)
-    segments: bool = False  # after selfcal, divide out each colour region's albedo (models/segments.py)
-    netcal: bool = False  # after selfcal, divide out the colour read off its own normals, predict again
-
-    @property
-    def base_key(self) -> tuple:
-        """Methods with the same key predict the same normals before the refinement: a `+refine`
-        twin reuses its base method's prediction (`patch_predictions`, `frame_predictions`)."""
-        return self.kind, id(self.model), self.selfcal, self.segments, self.mirror, self.netcal
-
-    @property
-    def netcal_key(self) -> tuple:
-        """What the network-colour loop's result depends on (a `+refine` twin shares its base's)."""
-        return id(self.model), self.mirror
-
-    def object_albedo(self, f: "FrameFit") -> refine.ObjectAlbedo:
-        """The refinement's albedo estimate of the frame as this method sees it."""
-        if self.netcal:
-            return f.netcal[self.netcal_key].albedo
-        if self.segments:
-            return f.albedo_segments
-        return f.albedo_selfcal if self.selfcal else f.albedo
-
-    def patches(self, b, fits: list["FrameFit"] | None = None) -> np.ndarray:
-        """(B, 3, P, P) normals for a batch dict; `fits`: each patch's frame-level fits (`frame_fits`)."""
-        image, pred = self.unrefined_patches(b, fits)
-        return self.refined_patches(image, pred, b, fits)
-
-    def unrefined_patches(self, b, fits: list["FrameFit"] | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(the batch's images as the method sees them, its normals before any refinement)."""
-        image = b["image"]
-        if (self.selfcal or self.refine) and fits is None:
-            raise ValueError(f"{self.name}: self-calibration and refinement need the frames' fits")
-        if self.selfcal:  # the frames' factors: one colour per frame, or (segments) a map cropped per patch
-            import torch
-
-            P = image.shape[-1]
-            if self.segments:
-                factor = np.stack([f.segment_map(y, x, P) for f, (y, x) in zip(fits, b["yx"].numpy())])
-            elif self.netcal:  # the loop ran on the whole frame (`frame_fits`): its colour, then this network
-                factor = np.stack([f.netcal[self.netcal_key].scale for f in fits])[:, None, None, :]
-            else:
-                factor = np.stack([f.scale for f in fits])[:, None, None, :]
-            image = image * torch.from_numpy(factor.transpose(0, 3, 1, 2).astype(np.float32))
-        if self.kind == LAMBERTIAN:
-            img = image.numpy().transpose(0, 2, 3, 1)
-            out = np.stack([lambertian_ps(img[i], b["light_dirs"][i].numpy(), b["crosstalk"][i].numpy())
-                            for i in range(len(img))])
-            return image.numpy(), out.transpose(0, 3, 1, 2)
-        import torch
-
-        rigs = b["crosstalk"] @ b["light_dirs"]
-
-        def net(x: np.ndarray, mk: np.ndarray) -> np.ndarray:  # (B, P, P, 3), (B, P, P) -> (B, P, P, 3)
-            with torch.no_grad():
-                out = self.model(torch.from_numpy(np.ascontiguousarray(x.transpose(0, 3, 1, 2), np.float32)),
-                                 torch.from_numpy(np.ascontiguousarray(mk[:, None], np.float32)), rigs)[0]
-            return out.numpy().transpose(0, 2, 3, 1)
-
-        img, mk = image.numpy().transpose(0, 2, 3, 1), b["mask"].numpy()[:, 0] > 0
-        if not self.mirror:
-            return image.numpy(), net(img, mk).transpose(0, 3, 1, 2)
-        mirrors = [symmetry.require_mirror(b["light_dirs"][i].numpy(), b["crosstalk"][i].numpy())
-                   for i in range(len(img))]
-        return image.numpy(), symmetry.mirror_ensemble_batch(net, img, mk, mirrors).transpose(0, 3, 1, 2)
-
-    def refined_patches(self, image: np.ndarray, pred: np.ndarray, b, fits: list["FrameFit"] | None
-                        ) -> np.ndarray:
-        """Each patch refined with its frame's albedo estimate, as the whole frame would be
-        (`pred` itself when this method does not refine)."""
-        if not self.refine:
-            return pred
-        out = pred.copy()
-        for i, f in enumerate(fits):
-            mk = b["mask"][i, 0].numpy() > 0
-            n, n3, n2 = refine.refine_pixels(image[i].transpose(1, 2, 0)[mk], pred[i].transpose(1, 2, 0)[mk],
-                                             b["light_dirs"][i].numpy(), b["crosstalk"][i].numpy(),
-                                             self.object_albedo(f))
-            if n3 or n2:
-                o = out[i].transpose(1, 2, 0)  # a view: writes go to out
-                o[mk] = n
-        return out
-
-    def frame(self, fr) -> np.ndarray:
-        return self.refined_frame(fr, *self.unrefined_frame(fr))
-
-    def unrefined_frame(self, fr, fit: "FrameFit | None" = None) -> tuple[np.ndarray, np.ndarray]:
-        """(the frame's image as the method sees it, its normals before any refinement); `fit`: the
-        frame's fits, whose network-colour loop (if this method's ran in `frame_fits`) is reused."""
-        if self.netcal and fit is not None and self.netcal_key in fit.netcal:
-            loop = fit.netcal[self.netcal_key]
-            return loop.image, loop.normals
-        if self.segments:
-            image = segments.calibrated(fr.image, fr.mask, fr.light_dirs, fr.crosstalk)
-        elif self.selfcal:
-            image = selfcal.self_calibrated(fr.image, fr.mask, fr.light_dirs, fr.crosstalk)
-        else:
-            image = fr.image
-        if self.kind == LAMBERTIAN:
-            return image, lambertian_ps(image, fr.light_dirs, fr.crosstalk, fr.mask)
-        predict = self.frame_predictor(fr)
-        if self.netcal:
-            normals, image, _ = netcal.calibrate(predict, image, fr.mask, fr.crosstalk @ fr.light_dirs)
-            return image, normals
-        return image, predict(image)
-
-    def frame_predictor(self, fr):
-        """image (H, W, 3) -> this network's normals of the frame (mirror-averaged with `mirror`)."""
-        from msps_render.models.predict import predict_image
-
-        rig = fr.crosstalk @ fr.light_dirs
-        if not self.mirror:
-            return lambda x: predict_image(self.model, x, fr.mask, rig=rig)
-        mirror = symmetry.require_mirror(fr.light_dirs, fr.crosstalk)
-        return lambda x: symmetry.mirror_ensemble(lambda y, m: predict_image(self.model, y, m, rig=rig), x,
-                                                  fr.mask, mirror)
-
-    def refined_frame(self, fr, image: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        if not self.refine:
-            return normals
-        return refine.refine_normals(image, fr.mask, normals, fr.light_dirs, fr.crosstalk)[0]
+def resolve_methods(checkpoints=(), methods=(), columns: list[Steps] | None = None) -> list[Method]:
+    """`msps eval --checkpoint [NAME=]PATH ... --method net|lambertian ... --steps S ...` -> the columns:
+    every predictor (checkpoints first) under every steps value (default: `DEFAULT_RENDERED`)."""
+    return make_methods(resolve_predictors(checkpoints, methods), columns or [DEFAULT_RENDERED])
 
 
-def patch_predictions(methods: list[Method], b, fits: list["FrameFit"] | None) -> list[np.ndarray]:
-    """Each method's (B, 3, P, P) normals for one batch; the network runs once per `base_key`."""
-    base: dict[tuple, tuple] = {}
-    out = []
-    for m in methods:
-        if m.base_key not in base:
-            base[m.base_key] = m.unrefined_patches(b, fits)
-        out.append(m.refined_patches(*base[m.base_key], b, fits))
-    return out
+class FrameRow(NamedTuple):
+    """One method on one whole frame: the per-object table's unit."""
 
-
-def frame_predictions(methods: list[Method], fr, fit: "FrameFit | None" = None) -> list[np.ndarray]:
-    """Each method's (H, W, 3) normals for one whole frame; the network runs once per `base_key`
-    (and not at all for a network-colour loop that `frame_fits` already ran: pass the frame's `fit`)."""
-    base: dict[tuple, tuple] = {}
-    out = []
-    for m in methods:
-        if m.base_key not in base:
-            base[m.base_key] = m.unrefined_frame(fr, fit)
-        out.append(m.refined_frame(fr, *base[m.base_key]))
-    return out
-
-
-def with_selfcal(methods: list[Method]) -> list[Method]:
-    """Each method, then each again after the albedo-colour self-calibration ("NAME+selfcal")."""
-    twins = [replace(m, name=m.name + selfcal.SUFFIX, selfcal=True,
-                     info={**m.info, "description": f"{m.info.get('description', m.name)}, {selfcal.DESCRIPTION}"})
-             for m in methods]
-    return list(methods) + twins
-
-
-def with_segments(methods: list[Method]) -> list[Method]:
-    """Each method, then each one without selfcal again after the object-level and the segment-wise
-    self-calibration ("NAME+selfcal+segments")."""
-    twins = [replace(m, name=m.name + selfcal.SUFFIX + segments.SUFFIX, selfcal=True, segments=True,
-                     info={**m.info, "description": f"{m.info.get('description', m.name)}, {segments.DESCRIPTION}"})
-             for m in methods if not m.selfcal]
-    return list(methods) + twins
-
-
-def with_netcal(methods: list[Method]) -> list[Method]:
-    """Each network without selfcal, then again after the object-level self-calibration and the colour read
-    off its own normals ("NAME+selfcal+netcal"; models/netcal.py)."""
-    twins = [replace(m, name=m.name + selfcal.SUFFIX + netcal.SUFFIX, selfcal=True, netcal=True,
-                     info={**m.info, "description": f"{m.info.get('description', m.name)}, {selfcal.DESCRIPTION}, "
-                                                    f"{netcal.DESCRIPTION}"})
-             for m in methods if m.kind == "net" and not m.selfcal]
-    return list(methods) + twins
-
-
-def with_mirror(methods: list[Method]) -> list[Method]:
-    """Each method, then each network again averaged with its mirror-image prediction ("NAME+mirror")."""
-    twins = [replace(m, name=m.name + symmetry.SUFFIX, mirror=True,
-                     info={**m.info, "description": f"{m.info.get('description', m.name)}, {symmetry.DESCRIPTION}"})
-             for m in methods if m.kind == "net"]
-    return list(methods) + twins
-
-
-def with_refine(methods: list[Method]) -> list[Method]:
-    """Each method, then each network again with the Lambertian refinement after it ("NAME+refine")."""
-    twins = [replace(m, name=m.name + refine.SUFFIX, refine=True,
-                     info={**m.info, "description": f"{m.info.get('description', m.name)}, {refine.DESCRIPTION}"})
-             for m in methods if m.kind == "net"]
-    return list(methods) + twins
-
-
-@dataclass(frozen=True)
-class NetcalFrame:
-    """One network's colour loop on a whole frame (models/netcal.py), kept for its patches and its frame."""
-
-    scale: np.ndarray  # (3,) selfcal x loop factor on the image as rendered
-    albedo: refine.ObjectAlbedo  # the refinement's estimate after it
-    image: np.ndarray  # (H, W, 3) the image the normals were predicted on
-    normals: np.ndarray  # (H, W, 3) the loop's normals, before any refinement
+    object: str
+    mae_deg: float
+    n_pixels: int
+    error_sum: float
 
 
 @dataclass(frozen=True)
 class FrameFit:
-    """A frame's whole-object estimates that its patches are scored with."""
+    """What a method's steps found on a whole frame that its patches are scored with: the colour factor
+    on the frame's image ((3,) or (H, W, 3); None: no colour step) and, per `normals`-stage step, its
+    frame value (the refinement's albedo estimate)."""
 
-    scale: np.ndarray  # (3,) the self-calibration's colour factor (models/selfcal.py)
-    albedo: refine.ObjectAlbedo  # the refinement's albedo estimate on the image as rendered
-    albedo_selfcal: refine.ObjectAlbedo  # ... after the colour factor
-    segment_scale: np.ndarray | None = None  # (H, W, 3) selfcal then segment-wise factors (models/segments.py)
-    albedo_segments: refine.ObjectAlbedo | None = None  # ... the refinement's estimate after them
-    netcal: dict = field(default_factory=dict)  # Method.netcal_key -> NetcalFrame
+    scale: np.ndarray | None
+    values: dict
 
-    def segment_map(self, y: int, x: int, size: int) -> np.ndarray:
-        """(size, size, 3) factors of the patch at (y, x)."""
-        if self.segment_scale is None:
-            raise ValueError("frame fits made without segments (frame_fits(..., segments=True))")
-        return self.segment_scale[y:y + size, x:x + size]
+    def factor(self, y: int, x: int, size: int) -> np.ndarray:
+        """The factor of the patch at (y, x): (1, 1, 3) or (size, size, 3)."""
+        s = np.asarray(self.scale)
+        return s[None, None, :] if s.ndim == 1 else s[y:y + size, x:x + size]
 
 
-def frame_fits(data: Path, condition: str | None, why: str = "--selfcal", segment_fits: bool = False,
-               netcal_methods: list[Method] = ()) -> dict[tuple[str, int], FrameFit]:
-    """(shard file name, frame index) -> the frame's fits, for scoring patches as whole frames are.
-    `netcal_methods`: each runs its network-colour loop on the whole frame (a network pass or two)."""
+def frame_pass(frames, methods: list[Method], bar=None) -> tuple[dict, dict, dict]:
+    """Every method on every whole frame, sharing work per frame (`Memo`): ({method: [FrameRow]},
+    {method: [per-pixel errors per frame]}, {(shard, frame index): [FrameFit per method]})."""
+    rows: dict = {m.name: [] for m in methods}
+    errs: dict = {m.name: [] for m in methods}
+    fits: dict = {}
+    for fr in frames:
+        memo, rig, fs = Memo(), Rig.of(fr), []
+        for m in methods:
+            s = run(m, fr.image, fr.mask, rig, memo)
+            e = angular_error_deg(s.normals[fr.mask], fr.normal[fr.mask])
+            rows[m.name].append(FrameRow(fr.object, float(e.mean()), int(e.size), float(e.sum())))
+            errs[m.name].append(e)
+            fs.append(FrameFit(s.scale, {st.name: st.frame(s) for st in m.steps.stage("normals")}))
+        fits[(fr.shard, fr.index)] = fs
+        if bar:
+            bar.advance()
+    return rows, errs, fits
+
+
+def patch_normals(m: Method, j: int, b, fits: list[list[FrameFit]] | None, memo: Memo) -> np.ndarray:
+    """Method `m`'s (B, P, P, 3) normals for one batch: its colour factor and `normals`-stage steps
+    from each patch's frame (`fits[i][j]`), its predictor (wrapped by `predictor`-stage steps) on the
+    patches alone."""
+    image = b["image"]
+    fs = None if fits is None else [f[j] for f in fits]
+    if fs is not None and fs and fs[0].scale is not None:
+        import torch
+
+        P = image.shape[-1]
+        factor = np.stack([f.factor(y, x, P) for f, (y, x) in zip(fs, b["yx"].numpy())])
+        image = image * torch.from_numpy(factor.transpose(0, 3, 1, 2).astype(np.float32))
+    img, mk = image.numpy().transpose(0, 2, 3, 1), b["mask"].numpy()[:, 0] > 0
+    rigs = [Rig(L.numpy(), M.numpy()) for L, M in zip(b["light_dirs"], b["crosstalk"])]
+    matrices, p = b["crosstalk"] @ b["light_dirs"], m.predictor
+    predict = lambda x, k: memo.call((id(p),), lambda a, c: p.patches(a, c, rigs, matrices), x, k)  # noqa: E731
+    for step in m.steps.stage("predictor"):
+        predict = step.batch(predict, rigs)
+    out = predict(img, mk)
+    for step in m.steps.stage("normals"):
+        out = step.patches(img, out, mk, rigs, [f.values[step.name] for f in fs])
+    return out
+
+
+def frame_errors(data, checkpoint, steps: str = "none") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per whole frame of a dataset: summed angular error of the checkpoint through `steps` (e.g.
+    "selfcal+netcal+refine"), of calibrated Lambertian PS on the image as rendered, and the pixel count.
+    What the shipped model's claims are measured with (tests/test_shipped_targets.py,
+    benchmarks/shipped_claims.py): the same runner as `msps eval`."""
+    from msps_render.data import iter_frames
+    from msps_render.models.runner import checkpoint_predictor, lambertian_predictor
+
+    net = Method("net", checkpoint_predictor(checkpoint), Steps.parse(steps))
+    base = Method("lambertian", lambertian_predictor())
+    out = []
+    for fr in iter_frames(data):
+        m, memo = fr.mask.astype(bool), Memo()
+        errs = [angular_error_deg(run(k, fr.image, m, Rig.of(fr), memo).normals[m], fr.normal[m]).sum()
+                for k in (net, base)]
+        out.append(errs + [m.sum()])
+    return tuple(np.array(c, np.float64) for c in zip(*out)) if out else (np.zeros(0),) * 3
+
+
+def _whole_frame_step(methods: list[Method]) -> str | None:
+    """How the user named a step that fits whole frames (a colour step first), or None."""
+    for m in methods:
+        names = m.steps.whole_image
+        if names:
+            return m.steps.where(next((n for n in names if STEPS[n].colour), names[0]))
+    return None
+
+
+def _has_frames(data: Path, cond: str, why: str | None) -> bool:
+    """Whether the condition's whole frames are stored; `why` (a step that fits them) makes it required."""
     from msps_render.data import iter_frames
 
     try:
-        frames = list(iter_frames(data, condition=condition))
+        next(iter(iter_frames(data, condition=cond)), None)
+        return True
     except InputError:
-        raise InputError(data, f"{why} fits each object on its whole frame; this dataset has no "
-                               "whole frames (render a preset with store_frames = true)") from None
-    fits = {}
-    for fr in frames:
-        whole = selfcal.fit_albedo_colour(fr.image, fr.mask, fr.light_dirs, fr.crosstalk)
-        scale = whole.scale
-        seg = alb_seg = None
-        if segment_fits:  # ones where the object-level fit applies (or nothing does): then `scale` alone
-            seg = segments.fit_segments(fr.image, fr.mask, fr.light_dirs, fr.crosstalk, whole=whole).scale * scale
-            alb_seg = refine.estimate_albedo(fr.image * seg, fr.mask, fr.light_dirs, fr.crosstalk)
-        loops = {}
-        for m in netcal_methods:
-            if m.netcal_key not in loops:
-                img = selfcal.apply_colour_fit(fr.image, whole)
-                n, seen, fit = netcal.calibrate(m.frame_predictor(fr), img, fr.mask, fr.crosstalk @ fr.light_dirs)
-                loops[m.netcal_key] = NetcalFrame(fit.scale * scale, refine.estimate_albedo(
-                    fr.image * (fit.scale * scale), fr.mask, fr.light_dirs, fr.crosstalk), seen, n)
-        fits[(fr.shard, fr.index)] = FrameFit(
-            scale, refine.estimate_albedo(fr.image, fr.mask, fr.light_dirs, fr.crosstalk),
-            refine.estimate_albedo(fr.image * scale, fr.mask, fr.light_dirs, fr.crosstalk), seg, alb_seg, loops)
-    return fits
+        if why:
+            raise InputError(data, f"{why} fits each object on its whole frame; this dataset has no "
+                                   "whole frames (render a preset with store_frames = true)") from None
+        return False
 
 
-def lambertian_method() -> Method:
-    return Method(LAMBERTIAN, LAMBERTIAN, {"description": "calibrated Lambertian photometric stereo"})
+def _frames(data: Path, cond: str) -> list:
+    from msps_render.data import iter_frames
+
+    return list(iter_frames(data, condition=cond))
 
 
-def checkpoint_method(path: str | Path, name: str | None = None) -> Method:
-    """A checkpoint; unnamed, it is called after its network: net (dual cue), scn or pcn (ablations)."""
-    from msps_render.models.checkpoint import load_checkpoint
+def _score_patches(ds, methods: list[Method], fits: dict | None, max_patches: int | None, bar=None) -> dict:
+    """Every method on the condition's patches: pooled errors, SSIM, and error sums per frame (units)."""
+    names = [m.name for m in methods]
+    errs = {n: [] for n in names}
+    ssims = {n: 0.0 for n in names}
+    usum: dict = defaultdict(lambda: np.zeros(len(methods)))
+    upix: dict = defaultdict(float)
+    seen = 0
+    from msps_render.data import make_loader
 
-    model, cfg, ck = load_checkpoint(path)
-    mode = cfg.net.mode
-    return Method(name or ("net" if mode == "dual" else mode), "net",
-                  {"description": "dual-cue network" if mode == "dual" else f"{mode.upper()} only (ablation)",
-                   "checkpoint": str(path), "preset": cfg.preset, "mode": mode,
-                   "val_mae_deg": ck.get("val_mae_deg")}, model)
+    for b in make_loader(ds, 64, shuffle=False):
+        g = b["normal"].numpy().transpose(0, 2, 3, 1)
+        mk = b["mask"].numpy()
+        keys = list(zip(b["shard"].tolist(), b["frame"].tolist()))
+        bfits = None if fits is None else [fits[(ds.shards[s][0].name, f)] for s, f in keys]
+        for k, px in zip(keys, mk[:, 0].sum((1, 2))):
+            upix[k] += float(px)
+        memo, scored = Memo(), {}
+        for j, m in enumerate(methods):
+            p = patch_normals(m, j, b, bfits, memo)
+            if id(p) not in scored:  # columns whose normals are the very same array share their scores
+                scored[id(p)] = (p, angular_error_deg(p, g),
+                                 _ssim_masked(p.transpose(0, 3, 1, 2), g.transpose(0, 3, 1, 2), mk))
+            e, ssim = scored[id(p)][1:]
+            errs[m.name].append(e[mk[:, 0] > 0])
+            ssims[m.name] += ssim * len(p)
+            for k, s in zip(keys, (e * mk[:, 0]).sum((1, 2))):
+                usum[k][j] += float(s)
+        seen += len(g)
+        if bar:
+            bar.advance(len(g))
+        if max_patches and seen >= max_patches:
+            break
+    return {"errs": errs, "ssims": ssims, "usum": usum, "upix": upix, "seen": seen}
 
 
-def resolve_methods(checkpoints=(), methods=(), selfcal: bool = False, refine: bool = False,
-                    mirror: bool = False, segments: bool = False, netcal: bool = False) -> list[Method]:
-    """`msps eval --checkpoint [NAME=]PATH ... --method net|lambertian ...` -> the methods, checkpoints first.
+def _patch_stats(cond: str, methods: list[Method], sc: dict) -> tuple[dict, tuple]:
+    """Per method the condition's patch statistics (with the frame-bootstrap CI); and its units."""
+    ukeys = sorted(sc["upix"])
+    num = np.stack([sc["usum"][k] for k in ukeys], 1) if ukeys else np.zeros((len(methods), 0))
+    den = np.array([sc["upix"][k] for k in ukeys])
+    ci = bootstrap_ci(num, den, f"patches:{cond}")
+    out = {}
+    for j, m in enumerate(methods):
+        e_all = np.concatenate(sc["errs"][m.name]) if sc["errs"][m.name] else np.zeros(0)
+        stats = error_stats(e_all)
+        stats.update(hist_deg=error_histogram(e_all), ssim=float(sc["ssims"][m.name] / max(sc["seen"], 1)),
+                     n_patches=sc["seen"], n_frames=len(ukeys), ci95_deg=ci[j].tolist())
+        out[m.name] = stats
+    return out, ([(cond, *k) for k in ukeys], num, den)
 
-    `net` stands for the checkpoints given (the shipped one when none is); checkpoints imply `net`, so
-    `--checkpoint a.pt --method lambertian` compares both.  Nothing given: the shipped checkpoint."""
-    kinds = list(dict.fromkeys(methods or ["net"]))
-    for k in kinds:
-        if k not in ("net", LAMBERTIAN):
-            raise InputError("--method", f"unknown method '{k}' (net or lambertian)")
-    specs: list[tuple[str | None, Path]] = []
-    for s in checkpoints or ():
-        s = str(s)
-        if "=" in s and not Path(s).is_file():
-            name, _, p = s.partition("=")
-            if not name.strip() or not p.strip():
-                raise InputError("--checkpoint", f"'{s}': expected PATH or NAME=PATH")
-            specs.append((name.strip(), Path(p.strip())))
-        else:
-            specs.append((None, Path(s)))
-    if not specs and "net" in kinds:
-        from msps_render.models.predict import default_checkpoint
 
-        specs = [(None, default_checkpoint())]
-    out: list[Method] = []
-    for name, p in specs:
-        if name == LAMBERTIAN:
-            raise InputError("--checkpoint", f"'{name}={p}': '{LAMBERTIAN}' names the baseline")
-        if name is not None and name in [m.name for m in out]:
-            raise InputError("--checkpoint", f"method name '{name}' given twice")
-        m = checkpoint_method(p, name)
-        if name is None:  # two unnamed checkpoints of one kind: add the run folder and file
-            base, k = m.name, 1
-            while m.name in [o.name for o in out]:
-                m.name = f"{base} {p.resolve().parent.name}/{p.stem}" + (f" ({k})" if k > 1 else "")
-                k += 1
-        out.append(m)
-    if LAMBERTIAN in kinds:
-        out.append(lambertian_method())
-    out = with_selfcal(out) if selfcal else out
-    out = with_segments(out) if segments else out  # twins of the methods without selfcal only
-    if netcal and not any(m.kind == "net" for m in out):
-        raise InputError("--netcal", "reads the colour off a network's normals: give a checkpoint or --method net "
-                                     "(the Lambertian baseline explains every colour as a tilt)")
-    out = with_netcal(out) if netcal else out  # ... of the networks without selfcal only
-    out = with_mirror(out) if mirror else out
-    return with_refine(out) if refine else out
+def _frame_stats(per: dict, cond: str, methods: list[Method], rows: dict, errs: dict) -> None:
+    """Whole-frame statistics and the per-object table of one condition, with their CIs, into `per`."""
+    names = [m.name for m in methods]
+    for n in names:
+        c = per[n]["conditions"][cond]
+        c["frames"] = error_stats(np.concatenate(errs[n]))
+        c["frames"]["n_frames"] = len(rows[n])
+        det = per_object_detail(rows[n])  # models/report.py
+        c["per_object"] = {k: v["mae_deg"] for k, v in det.items()}
+        c["per_object_detail"] = det
+    _frame_cis(per, names, rows, cond)
 
 
 def bootstrap_ci(num: np.ndarray, den: np.ndarray, key: str, n_boot: int = N_BOOT,
@@ -397,101 +261,49 @@ def bootstrap_ci(num: np.ndarray, den: np.ndarray, key: str, n_boot: int = N_BOO
     return np.stack(np.percentile(s, [tail, 100.0 - tail], axis=0), -1)
 
 
-def _legacy_methods(checkpoint, method: str) -> list[Method]:
-    if method not in ("net", LAMBERTIAN):
-        raise InputError("--method", f"unknown method '{method}' (net or lambertian)")
-    if method == LAMBERTIAN:
-        return [lambertian_method()]
-    if checkpoint is None:
-        from msps_render.models.predict import default_checkpoint
+def evaluate(data: str | Path, out: str | Path, methods: list[Method] | None = None, *,
+             max_patches: int | None = None, verify: bool = True, progress: bool = False) -> dict:
+    """Score `methods` (default: the shipped checkpoint with the default steps) on a dataset.
 
-        checkpoint = default_checkpoint()
-    return [checkpoint_method(checkpoint)]
+    Per condition: every method on the whole frames (when stored; the steps' fits come from them), then
+    on the patches.  Writes metrics.json, table.md, per_object.csv and the figures into `out`; returns
+    the report.  `progress`: a rich progress line per stage on stderr."""
+    from msps_render.data import PatchDataset
 
-
-def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = None, method: str = "net",
-             max_patches: int | None = None, verify: bool = True, methods: list[Method] | None = None) -> dict:
-    """Score `methods` (default: the checkpoint, or the baseline with `method="lambertian"`) on a dataset.
-
-    Writes metrics.json, table.md, per_object.csv and the figures into `out`; returns the report."""
-    from msps_render.data import PatchDataset, iter_frames, make_loader
-
-    methods = methods or _legacy_methods(checkpoint, method)
+    methods = methods or resolve_methods()
     names = [m.name for m in methods]
     if len(set(names)) != len(names):
         raise InputError("--checkpoint", f"method names must differ: {', '.join(names)}")
     data, out = Path(data), Path(out)
     man = load_manifest(data, need_complete=False)
     conditions = [c.name for c in man.conditions]
-    per = {m.name: {"conditions": {}} for m in methods}
+    why = _whole_frame_step(methods)
+    per = {n: {"conditions": {}} for n in names}
     units: dict = {}  # condition -> patches: (unit keys, (M, U) error sums, (U,) pixels); frames: rows
-    for cond in conditions:
-        ds = PatchDataset(data, condition=cond, verify=verify)
-        errs = {n: [] for n in names}
-        ssims = {n: 0.0 for n in names}
-        usum: dict = defaultdict(lambda: np.zeros(len(methods)))
-        upix: dict = defaultdict(float)
-        seen = 0
-        why = ("--segments" if any(m.segments for m in methods) else
-               "--netcal" if any(m.netcal for m in methods) else
-               "--selfcal" if any(m.selfcal for m in methods) else "--refine")
-        fits = frame_fits(data, cond, why, segment_fits=any(m.segments for m in methods),
-                          netcal_methods=[m for m in methods if m.netcal]) \
-            if any(m.selfcal or m.refine for m in methods) else None
-        for b in make_loader(ds, 64, shuffle=False):
-            g = b["normal"].numpy()
-            mk = b["mask"].numpy()
-            keys = list(zip(b["shard"].tolist(), b["frame"].tolist()))
-            bfits = None if fits is None else [fits[(ds.shards[s][0].name, f)] for s, f in keys]
-            pix = mk[:, 0].sum((1, 2))
-            for k, px in zip(keys, pix):
-                upix[k] += float(px)
-            for j, (m, p) in enumerate(zip(methods, patch_predictions(methods, b, bfits))):
-                e = angular_error_deg(p.transpose(0, 2, 3, 1), g.transpose(0, 2, 3, 1))
-                errs[m.name].append(e[mk[:, 0] > 0])
-                ssims[m.name] += _ssim_masked(p, g, mk) * len(p)
-                for k, s in zip(keys, (e * mk[:, 0]).sum((1, 2))):
-                    usum[k][j] += float(s)
-            seen += len(g)
-            if max_patches and seen >= max_patches:
-                break
-        ukeys = sorted(upix)
-        num = np.stack([usum[k] for k in ukeys], 1) if ukeys else np.zeros((len(methods), 0))
-        den = np.array([upix[k] for k in ukeys])
-        ci = bootstrap_ci(num, den, f"patches:{cond}")
-        units[cond] = {"patches": ([(cond, *k) for k in ukeys], num, den), "frames": []}
-        for j, m in enumerate(methods):
-            e_all = np.concatenate(errs[m.name]) if errs[m.name] else np.zeros(0)
-            stats = error_stats(e_all)
-            stats["hist_deg"] = error_histogram(e_all)
-            stats["ssim"] = float(ssims[m.name] / max(seen, 1))
-            stats["n_patches"] = seen
-            stats["n_frames"] = len(ukeys)
-            stats["ci95_deg"] = ci[j].tolist()
-            per[m.name]["conditions"][cond] = {"patches": stats}
-        # whole frames, when stored: per-object table
-        try:
-            frames = list(iter_frames(data, condition=cond))
-        except InputError:
-            frames = []
-        if frames:
-            rows = {n: [] for n in names}
-            all_err = {n: [] for n in names}
-            for fr in frames:
-                for m, n in zip(methods, frame_predictions(methods, fr, None if fits is None
-                                                           else fits.get((fr.shard, fr.index)))):
-                    e = angular_error_deg(n[fr.mask], fr.normal[fr.mask])
-                    all_err[m.name].append(e)
-                    rows[m.name].append((fr.object, float(e.mean()), int(e.size), float(e.sum())))
-            units[cond]["frames"] = rows
-            for m in methods:
-                c = per[m.name]["conditions"][cond]
-                c["frames"] = error_stats(np.concatenate(all_err[m.name]))
-                c["frames"]["n_frames"] = len(frames)
-                det = per_object_detail(rows[m.name])  # models/report.py
-                c["per_object"] = {k: v["mae_deg"] for k, v in det.items()}
-                c["per_object_detail"] = det
-            _frame_cis(per, names, rows, cond)
+    sets = {c: PatchDataset(data, condition=c, verify=verify) for c in conditions}  # every check before any work
+    stored = {c: _has_frames(data, c, why) for c in conditions}
+    with Bar(progress) as bar:
+        for cond in conditions:
+            ds, frames = sets[cond], _frames(data, cond) if stored[cond] else []
+            rows, errs, fits = frame_pass(frames, methods, bar.task(f"{cond or data.name}: frames", len(frames)))
+            n_patches = len(ds) if not max_patches else min(len(ds), max_patches)
+            sc = _score_patches(ds, methods, fits if why else None, max_patches,
+                                bar.task(f"{cond or data.name}: patches", n_patches))
+            stats, units_p = _patch_stats(cond, methods, sc)
+            units[cond] = {"patches": units_p, "frames": rows if frames else []}
+            for n in names:
+                per[n]["conditions"][cond] = {"patches": stats[n]}
+            if frames:
+                _frame_stats(per, cond, methods, rows, errs)
+    report = _report(data, man, methods, per, units, conditions)
+    return _write(report, out)
+
+
+def _report(data: Path, man: Manifest, methods: list[Method], per: dict, units: dict,
+            conditions: list[str]) -> dict:
+    """metrics.json's content: per method, pooled over conditions, the comparison table (and the format-1
+    keys of a single-method run, what robust_table.py and older readers take)."""
+    names = [m.name for m in methods]
     for m in methods:
         if len(conditions) > 1:
             per[m.name]["robustness"] = robustness(per[m.name], man)
@@ -500,7 +312,7 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
                     "ci": CI_NOTE}
     report["pooled"] = _pooled(units, names, conditions)
     report["table"] = comparison_table(report)
-    if len(methods) == 1:  # format-1 keys: what single-method consumers (robust_table.py, tests) read
+    if len(methods) == 1:
         only = per[names[0]]
         report.update({"method": methods[0].kind, "checkpoint": only.get("checkpoint"),
                        "conditions": only["conditions"]})
@@ -508,8 +320,13 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
             report["robustness"] = only["robustness"]
     if any(c.get("per_object") for v in per.values() for c in v["conditions"].values()):
         report["per_object_note"] = PER_OBJECT_NOTE
+    return report
+
+
+def _write(report: dict, out: Path) -> dict:
+    """metrics.json (atomically: a crash leaves the old one or the new one), the tables and the figures."""
     out.mkdir(parents=True, exist_ok=True)
-    with atomic_write(out / "metrics.json") as tmp:  # a crash leaves the old metrics.json or the new one
+    with atomic_write(out / "metrics.json") as tmp:
         tmp.write_text(json.dumps(report, indent=1))
     report["files"] = [str(out / "metrics.json")] + [str(p) for p in write_tables(report, out)] + \
         [str(p) for p in write_plots(report, out)]
@@ -518,17 +335,17 @@ def evaluate(data: str | Path, out: str | Path, checkpoint: str | Path | None = 
 
 def _frame_cis(per: dict, names: list[str], rows: dict, cond: str) -> None:
     """CI of the frame-pooled MAE and of each object's mean of frame MAEs (bootstrap over its frames)."""
-    num = np.array([[r[3] for r in rows[n]] for n in names])
-    den = np.array([r[2] for r in rows[names[0]]], np.float64)
+    num = np.array([[r.error_sum for r in rows[n]] for n in names])
+    den = np.array([r.n_pixels for r in rows[names[0]]], np.float64)
     key = f"frames:{cond}"
     ci = bootstrap_ci(num, den, key)
-    objs = [r[0] for r in rows[names[0]]]
+    objs = [r.object for r in rows[names[0]]]
     for j, n in enumerate(names):
         c = per[n]["conditions"][cond]
         c["frames"]["ci95_deg"] = ci[j].tolist()
     for o in sorted(set(objs)):
         idx = [i for i, x in enumerate(objs) if x == o]
-        oci = bootstrap_ci(np.array([[rows[n][i][1] for i in idx] for n in names]), np.ones(len(idx)),
+        oci = bootstrap_ci(np.array([[rows[n][i].mae_deg for i in idx] for n in names]), np.ones(len(idx)),
                            f"{key}:{o}")
         for j, n in enumerate(names):
             per[n]["conditions"][cond]["per_object_detail"][o]["ci95_deg"] = oci[j].tolist()
@@ -550,17 +367,17 @@ def _pooled(units: dict, names: list[str], conditions: list[str]) -> dict:
                              "n_frames": len(keys)}
     rows = {n: [r for c in conditions for r in (units[c]["frames"] or {}).get(n, [])] for n in names}
     if rows[names[0]]:
-        fnum = np.array([[r[3] for r in rows[n]] for n in names])
-        fden = np.array([r[2] for r in rows[names[0]]], np.float64)
+        fnum = np.array([[r.error_sum for r in rows[n]] for n in names])
+        fden = np.array([r.n_pixels for r in rows[names[0]]], np.float64)
         fci = bootstrap_ci(fnum, fden, "frames:*")
-        objs = [r[0] for r in rows[names[0]]]
+        objs = [r.object for r in rows[names[0]]]
         for j, n in enumerate(names):
             out[n]["frames"] = {"mae_deg": float(fnum[j].sum() / fden.sum()), "ci95_deg": fci[j].tolist(),
                                 "n_frames": len(objs)}
             out[n]["per_object"] = {}
         for o in sorted(set(objs)):
             idx = [i for i, x in enumerate(objs) if x == o]
-            vals = np.array([[rows[n][i][1] for i in idx] for n in names])
+            vals = np.array([[rows[n][i].mae_deg for i in idx] for n in names])
             oci = bootstrap_ci(vals, np.ones(len(idx)), f"frames:*:{o}")
             for j, n in enumerate(names):
                 out[n]["per_object"][o] = {"mae_deg": float(vals[j].mean()), "ci95_deg": oci[j].tolist(),

@@ -33,7 +33,7 @@ DESCRIPTION = "after the albedo colour read off its own normals, predicted again
 
 @dataclass(frozen=True)
 class NetcalSettings:
-    """Chosen on the validation frames by benchmarks/netcal_sweep.py (docs/history.md "Stage 13"): the lowest
+    """Chosen on the validation frames by experiments/netcal_sweep.py (docs/history.md "Stage 13"): the lowest
     mean over val-frames, -grey, -colour and -texture with no set worse than +0.10 deg (runs/13-decision.txt).
     More rounds diverge on objects of several colours; the agreement gate keeps the loop off them."""
 

@@ -1,10 +1,7 @@
-"""Whole-image prediction: overlapping tiles through the network, blended; or the baseline.
+"""`msps predict`: one image through one method (a checkpoint or the baseline, and its steps) to a
+normal map, its picture, a panel and, with a ground truth, the error.
 
-The network sees 40x40 patches in training, so a whole image is cut into
-overlapping tiles (stride 20 by default), each tile's normals are weighted by a
-smooth window that favours tile centres (where the receptive field is
-complete), summed, and renormalised.
-"""
+The tiled whole-image prediction itself is `models/tiles.py` (`predict_image`, re-exported here)."""
 from __future__ import annotations
 
 import json
@@ -13,51 +10,16 @@ from pathlib import Path
 import numpy as np
 
 from msps_render.atomic import save_array
-from msps_render.calibration import geometry_warnings, load_calibration_file, parse_calibration
+from msps_render.calibration import Rig, geometry_warnings, load_calibration_file, parse_calibration
 from msps_render.errors import InputError
 from msps_render.io.images import read_image, write_png
-from msps_render.models.baseline import lambertian_ps
-from msps_render.patches import window_origins
+from msps_render.io.normals import read_normal_map as read_normal_gt
+from msps_render.models.runner import (LAMBERTIAN, NET, Method, checkpoint_predictor, default_checkpoint,  # noqa: F401
+                                       Memo, label, lambertian_predictor, run, trace)
+from msps_render.models.steps import DEFAULT_PHOTOS, STEPS, Steps
+from msps_render.models.tiles import predict_image  # noqa: F401 (re-exported: callers import it from here)
 from msps_render.preview import normal_to_rgb8
-from msps_render.resources import data_dir
-
-
-def _window(size: int) -> np.ndarray:
-    w = np.hanning(size + 2)[1:-1]
-    return np.outer(w, w).astype(np.float32) + 1e-3
-
-
-def predict_image(model, image: np.ndarray, mask: np.ndarray, tile: int = 40, stride: int = 20,
-                  batch: int = 64, rig: np.ndarray | None = None) -> np.ndarray:
-    """Normals (H, W, 3) of an image (H, W, 3) with a dual-cue model; 0 outside the mask.
-    `rig` = crosstalk @ light_dirs (3, 3): needed by a network with the Lambertian cue."""
-    import torch
-
-    rig_t = None if rig is None else torch.as_tensor(np.asarray(rig), dtype=torch.float32)
-    H, W = mask.shape
-    if H < tile or W < tile:
-        raise ValueError(f"image {H}x{W} is smaller than the {tile}x{tile} tile")
-    origins = window_origins(H, W, tile, stride)
-    m = mask.astype(bool)
-    keep = [(y, x) for y, x in origins if m[y:y + tile, x:x + tile].any()]
-    acc = np.zeros((H, W, 3), np.float32)
-    wsum = np.zeros((H, W), np.float32)
-    win = _window(tile)
-    model.eval()
-    with torch.no_grad():
-        for i in range(0, len(keep), batch):
-            yx = keep[i:i + batch]
-            x = np.stack([image[y:y + tile, x_:x_ + tile] for y, x_ in yx]).transpose(0, 3, 1, 2)
-            mk = np.stack([m[y:y + tile, x_:x_ + tile] for y, x_ in yx])[:, None]
-            pred, _ = model(torch.from_numpy(np.ascontiguousarray(x, np.float32)),
-                            torch.from_numpy(mk.astype(np.float32)), rig_t)
-            pred = pred.numpy().transpose(0, 2, 3, 1)
-            for (y, x_), p in zip(yx, pred):
-                acc[y:y + tile, x_:x_ + tile] += p * win[..., None]
-                wsum[y:y + tile, x_:x_ + tile] += win
-    n = acc / np.maximum(np.linalg.norm(acc, axis=-1, keepdims=True), 1e-12)
-    n[~m] = 0.0
-    return n
+from msps_render.progress import Bar
 
 
 def load_calibration(path: str | Path | None, light_dirs: str | None, crosstalk: str | None):
@@ -102,6 +64,7 @@ def read_inputs(image_path: str | Path, mask_path: str | Path | None,
     return img, mk
 
 
+LARGE_PIXELS = 512 * 512  # from this size on `msps predict` shows progress (steps, network passes, tiles)
 OUT_SUFFIXES = (".npy", ".png")  # `--out x.png` and `--out x` both mean the stem x; other dots stay
 PANEL_COL_IN, PANEL_H_IN, PANEL_CBAR_IN, PANEL_DPI = 3.0, 3.4, 0.7, 100  # panel layout (inches, dpi)
 ERROR_MAX_DEG = 45.0  # top of the error map's colour scale (larger errors saturate)
@@ -115,39 +78,6 @@ def out_paths(out: str | Path) -> dict[str, Path]:
         s = s[:-len(Path(s).suffix)]
     return {"npy": Path(s + ".npy"), "png": Path(s + ".png"), "panel": Path(s + "-panel.png"),
             "metrics": Path(s + "-metrics.json")}
-
-
-def read_normal_gt(path: str | Path, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """(unit normals (H, W, 3), valid (H, W)) of a ground-truth normal map.
-
-    .npy: signed normals.  PNG (8/16 bit) and other images: (n+1)/2-encoded.  EXR/HDR: signed (as
-    `msps` writes normal.exr) unless no value is negative, then (n+1)/2-encoded.  Zero normals (and,
-    once decoded, vectors far from unit length: black or mid-grey backgrounds) are invalid."""
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "ground-truth normal map not found")
-    suffix = p.suffix.lower()
-    if suffix == ".npy":
-        n = np.load(p).astype(np.float64)
-    elif suffix == ".png":
-        from msps_render.io.png16 import read_png
-
-        a = read_png(p)
-        n = a.astype(np.float64) / np.iinfo(a.dtype).max * 2.0 - 1.0 if a.ndim == 3 else a
-    else:
-        n = read_image(p).astype(np.float64)
-        if suffix not in (".exr", ".hdr") or n[..., :3].min() >= 0:
-            n = n * 2.0 - 1.0
-    if n.ndim != 3 or n.shape[2] < 3:
-        raise InputError(p, f"expected an (H, W, 3) normal map, got shape {list(n.shape)}")
-    n = n[..., :3]
-    if n.shape[:2] != tuple(shape):
-        raise InputError(p, f"normal map is {n.shape[1]}x{n.shape[0]}, the image is {shape[1]}x{shape[0]}")
-    n = np.where(np.isfinite(n).all(-1, keepdims=True), n, 0.0)
-    length = np.linalg.norm(n, axis=-1)
-    valid = (length > 0.5) & (length < 1.5)
-    n = np.where(valid[..., None], n / np.maximum(length, 1e-12)[..., None], 0.0)
-    return n, valid
 
 
 def write_panel(path: Path, image: np.ndarray, mask: np.ndarray, normal: np.ndarray, title: str,
@@ -193,101 +123,55 @@ def write_panel(path: Path, image: np.ndarray, mask: np.ndarray, normal: np.ndar
     return path
 
 
-def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | None = None,
-                 method: str = "net", mask: str | Path | None = None, calibration: str | Path | None = None,
-                 light_dirs: str | None = None, crosstalk: str | None = None, warn=None,
-                 linear: bool | None = None, normal_gt: str | Path | None = None, panel: bool = True,
-                 selfcal: bool = False, refine: bool = False, mirror: bool = False,
-                 segments: bool = False, netcal: bool = False) -> list[Path]:
+def load_rig(calibration: str | Path | None = None, light_dirs: str | None = None,
+             crosstalk: str | None = None) -> Rig:
+    """The image's rig from --calibration / --light-dirs / --crosstalk; none given: the paper's, assumed."""
+    L, M = load_calibration(calibration, light_dirs, crosstalk)  # validated either way
+    return Rig(L, M, assumed=not (calibration or light_dirs or crosstalk))
+
+
+def predict_method(kind: str = NET, checkpoint: str | Path | None = None, steps: Steps = DEFAULT_PHOTOS) -> Method:
+    """`msps predict`'s one method: the checkpoint (default: the shipped one) or the baseline, and its steps."""
+    if kind not in (NET, LAMBERTIAN):
+        raise InputError("--method", f"unknown method '{kind}' (net or lambertian)")
+    p = lambertian_predictor() if kind == LAMBERTIAN else checkpoint_predictor(checkpoint or default_checkpoint())
+    return Method(p.name, p, steps)
+
+
+def predict_main(image: str | Path, out: str | Path, method: Method | None = None, rig: Rig | None = None, *,
+                 mask: str | Path | None = None, linear: bool | None = None, normal_gt: str | Path | None = None,
+                 panel: bool = True, warn=None, progress: bool = False) -> list[Path]:
     """Write OUT.npy (H, W, 3 normals), OUT.png (visualisation) and OUT-panel.png (input, prediction;
     with `normal_gt` also the ground truth and the error map, and OUT-metrics.json with the MAE).
 
-    `warn(message)` (default: a 'warning: ...' line on stderr) hears when the Lambertian path assumes
-    the paper's lights for lack of a calibration, and when the given lights differ from the geometry
-    the network was trained for (the network takes no light input)."""
+    `method` default: the shipped network with the default steps; `rig` default: the paper's, assumed.
+    `warn(message)` (default: a 'warning: ...' line on stderr) hears when the paper's lights are assumed
+    for lack of a calibration, and when the given lights differ from the geometry the network was
+    trained for.  Every check runs before anything is written."""
     warn = warn or _warn_stderr
-    if refine and method == "lambertian":
-        raise InputError("--refine", "refines a network's normals; the Lambertian baseline has nothing to refine")
-    if netcal and method == "lambertian":
-        raise InputError("--netcal", "reads the colour off a network's normals; the Lambertian baseline "
-                                     "explains every colour as a tilt (use --selfcal)")
-    if netcal and segments:
-        raise InputError("--netcal", "and --segments are two ways to divide out the albedo colour; give one")
-    if mirror and method == "lambertian":
-        raise InputError("--mirror", "averages a network's two predictions; the Lambertian baseline is already "
-                                     "mirror-symmetric")
+    method = method or predict_method()
+    rig = rig or load_rig()
+    p = method.predictor
+    method.steps.check(p.network, rig)
     img, mk = read_inputs(image, mask, linear, warn)
     gt = read_normal_gt(normal_gt, img.shape[:2]) if normal_gt else None  # before any work: fail early
-    calibrated = bool(calibration or light_dirs or crosstalk)
-    L, M = load_calibration(calibration, light_dirs, crosstalk)  # validated on both paths
-    if mirror:
-        from msps_render.models.symmetry import mirror_ensemble, require_mirror
-
-        sym = require_mirror(L, M)  # before any work
-    fit = sfit = nfit = None
-    if selfcal or segments or netcal:
-        from msps_render.models.selfcal import apply_colour_fit, fit_albedo_colour
-
-        if not calibrated:
-            flag = "--segments" if segments else "--netcal" if netcal else "--selfcal"
-            warn(f"{flag} without --calibration: fitting the colour under the paper's lights")
-        fit = fit_albedo_colour(img, mk, L, M)
-        img_in = apply_colour_fit(img, fit)
-        if segments:  # after the object-level fit: only objects it leaves alone are cut into colour regions
-            from msps_render.models.segments import fit_segments
-
-            sfit = fit_segments(img, mk, L, M, whole=fit)
-            if sfit.applied:
-                img_in = (img_in * sfit.scale).astype(img_in.dtype)
-    else:
-        img_in = img
-    if method == "lambertian":
-        if not calibrated:
-            warn("no --calibration: assuming the paper's lights (slant 30 deg, tilts 0/120/240 deg, "
-                 "crosstalk 0.92/0.04)")
-        n = lambertian_ps(img_in, L, M, mk)
-        label = "lambertian"
-    else:
-        from msps_render.models.checkpoint import load_checkpoint
-
-        ck = checkpoint or default_checkpoint()
-        model, _, ckd = load_checkpoint(ck)
-        if calibrated:
-            for w in geometry_warnings(L, M, ckd.get("train_lights")):
-                warn(w)
-        elif getattr(model, "needs_rig", False):
-            warn("no --calibration: this network takes the lights; assuming the paper's (slant 30 deg, "
-                 "tilts 0/120/240 deg, crosstalk 0.92/0.04)")
-        if min(img.shape[:2]) < 40:
-            raise InputError(image, f"image is {img.shape[1]}x{img.shape[0]}; the network needs at least 40x40")
-        if mirror:
-            net = lambda x: mirror_ensemble(lambda y, m: predict_image(model, y, m, rig=M @ L), x, mk, sym)  # noqa: E731
-        else:
-            net = lambda x: predict_image(model, x, mk, rig=M @ L)  # noqa: E731
-        if netcal:
-            from msps_render.models.netcal import calibrate
-
-            n, img_in, nfit = calibrate(net, img_in, mk, M @ L)
-        else:
-            n = net(img_in)
-        label = f"net ({Path(ck).name})" + (" +mirror" if mirror else "")
-        if refine:
-            from msps_render.models.refine import refine_normals
-
-            n, rstats = refine_normals(img_in, mk, n, L, M)
-            label += f" +refine ({rstats.n_three + rstats.n_two:,} px)" if rstats.n_three + rstats.n_two \
-                else " +refine (not one albedo: kept)"
-    if fit is not None:
-        label += " +selfcal " + ("x" + "/".join(f"{v:.2f}" for v in fit.scale) if fit.applied else "(grey kept)")
-    if nfit is not None:
-        label += " +netcal " + ("x" + "/".join(f"{v:.2f}" for v in nfit.scale) if nfit.applied else "(kept)")
-    if sfit is not None:
-        label += (f" +segments ({len(sfit.accepted)} regions)" if sfit.applied else " +segments (not applied)")
+    if p.network and min(img.shape[:2]) < 40:
+        raise InputError(image, f"image is {img.shape[1]}x{img.shape[0]}; the network needs at least 40x40")
+    if rig.assumed and (not p.network or getattr(p.model, "needs_rig", False) or
+                        any(STEPS[n].needs_rig for n in method.steps.names)):
+        warn(f"no --calibration: assuming the paper's lights (slant 30 deg, tilts 0/120/240 deg, crosstalk "
+             f"0.92/0.04) for {' and '.join(['the baseline' if not p.network else 'the network'] + list(method.steps.names))}")
+    elif p.network and not rig.assumed:
+        for w in geometry_warnings(rig.light_dirs, rig.crosstalk, p.train_lights):
+            warn(w)
+    with Bar(progress and mk.size >= LARGE_PIXELS) as bar:  # per step and network pass: large images take minutes
+        state = run(method, img, mk, rig, Memo(bar.task(f"{Path(image).name}: {method.name}", None)))
+    n = state.normals
     paths = out_paths(out)
     paths["npy"].parent.mkdir(parents=True, exist_ok=True)
     save_array(paths["npy"], n.astype(np.float32))
     files = [paths["npy"], write_png(paths["png"], normal_to_rgb8(n, mk))]
-    title = f"{Path(image).name}: {label}"
+    title = f"{Path(image).name}: {label(method, state)}"
     err = None
     if gt is not None:
         from msps_render.models.metrics import angular_error_deg, error_stats
@@ -297,19 +181,11 @@ def predict_main(image: str | Path, out: str | Path, checkpoint: str | Path | No
         err = np.full(mk.shape, np.nan)
         err[scored] = angular_error_deg(n[scored], g[scored])
         stats = error_stats(err[scored])
-        metrics = {"image": str(image), "normal_gt": str(normal_gt), "method": method,
-                   "checkpoint": None if method == "lambertian" else str(ck), **stats,
-                   "selfcal": None if fit is None else {"applied": fit.applied, "scale": fit.scale.tolist(),
-                                                        "grey_rms": fit.grey_rms, "colour_rms": fit.colour_rms,
-                                                        "share": fit.share, "grey_share": fit.grey_share},
-                   "segments": None if sfit is None else {"applied": sfit.applied, "regions": len(sfit.accepted),
-                                                          "object_share": sfit.object_share,
-                                                          "reason": sfit.reason},
-                   "netcal": None if nfit is None else {"applied": nfit.applied, "scale": nfit.scale.tolist(),
-                                                        "agree": nfit.agree, "n_pixels": nfit.n_pixels},
-                   "refine": None if not refine else {"n_three": rstats.n_three, "n_two": rstats.n_two,
-                                                      "rho": rstats.albedo.rho, "uniform": rstats.albedo.uniform},
-                   "n_mask_pixels": int(mk.sum()), "n_left_out": int((mk & ~valid).sum())}
+        steps = trace(state)
+        metrics = {"image": str(image), "normal_gt": str(normal_gt), "method": p.kind,
+                   "checkpoint": p.info.get("checkpoint"), **stats, "steps": str(method.steps),
+                   **{k: steps.get(k) for k in STEPS}, "n_mask_pixels": int(mk.sum()),
+                   "n_left_out": int((mk & ~valid).sum())}
         paths["metrics"].write_text(json.dumps(metrics, indent=1))
         title += (f" — MAE {stats['mae_deg']:.2f}° over {stats['n_pixels']:,} px" if stats["n_pixels"]
                   else " — no pixel with both a mask and a ground-truth normal")
@@ -324,11 +200,3 @@ def _warn_stderr(msg: str) -> None:
     import sys
 
     print(f"warning: {msg}", file=sys.stderr)
-
-
-def default_checkpoint() -> Path:
-    """The small checkpoint shipped in models/ (trained by docs/reproducing.md)."""
-    p = data_dir("models") / "dualcue-cpu.pt"
-    if not p.is_file():
-        raise InputError(p, "no shipped checkpoint; pass --checkpoint")
-    return p

@@ -24,18 +24,20 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
+from msps_render.calibration import Rig
 from msps_render.errors import InputError
+from msps_render.models.runner import (LAMBERTIAN, NET, Memo, Method, Predictor, lambertian_predictor,
+                                       methods as make_methods, resolve_predictors, run)
+from msps_render.models.steps import DEFAULT_PHOTOS, STEPS, Steps
 
 FORMAT = "msps-realbench-1"
 VALIDATION_NOTE = "real captures are for validation only: never train or tune on them"
 ZERO_NORMAL_NORM = 1e-6  # a ground-truth normal shorter than this is unknown: the pixel is left out
 ERROR_MAP_MAX_DEG = 45.0
 ERROR_CMAP = "viridis"
-LAMBERTIAN = "lambertian"
 GT_NAMES = ("Normal_gt.mat", "Normal_gt.png")
 
 
@@ -65,33 +67,9 @@ class RealObject:
     def left_out(self) -> int:
         return int(self.mask.sum() - self.valid.sum())
 
-
-@dataclass
-class Method:
-    """A way to get normals from a `RealObject`; `warnings(obj)` lists caveats to print (e.g. geometry)."""
-
-    name: str
-    predict: Callable[[RealObject], np.ndarray]
-    info: dict
-    warnings: Callable[[RealObject], list[str]] = lambda obj: []
-    network: bool = True  # a network's normals (what --refine refines); False for the Lambertian baseline
-    selfcal: bool = False  # predicts on the self-calibrated image
-    segments: bool = False  # ... after the segment-wise self-calibration too (models/segments.py)
-    netcal: bool = False  # ... after the colour read off its own normals too (models/netcal.py)
-    loops: dict = field(default_factory=dict)  # netcal: (object name, id of its image) -> (image seen, normals)
-
-    def calibrated(self, o: "RealObject") -> np.ndarray:
-        """The object's image as this method sees it (what --refine then refines on; with netcal, after
-        `predict(o)`: the loop's image depends on the network's own normals)."""
-        from msps_render.models import segments, selfcal
-
-        if self.netcal:
-            return self.loops[(o.name, id(o.image))][0]
-        if self.segments:
-            return segments.calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)
-        if self.selfcal:
-            return selfcal.self_calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)
-        return o.image
+    @property
+    def rig(self) -> Rig:
+        return Rig(self.light_dirs, self.crosstalk)
 
 
 @dataclass
@@ -108,38 +86,15 @@ def object_name(folder: str | Path) -> str:
 
 
 def read_normal_gt(root: Path, shape: tuple[int, int]) -> tuple[np.ndarray, Path]:
-    """Ground-truth normals (H, W, 3) from Normal_gt.mat (key `Normal_gt`), else Normal_gt.png
-    (8/16-bit, n = v / max * 2 - 1; a decoded vector shorter than 0.5, i.e. mid grey, is the zero
-    vector, which 8-bit codes cannot hold exactly).  Non-finite vectors become zero (left out)."""
+    """Ground-truth normals (H, W, 3) of a capture folder: Normal_gt.mat, else Normal_gt.png, read by the
+    rule `msps predict --normal-gt` uses (`io.normals.read_normal_map`); no normal: the zero vector."""
+    from msps_render.io.normals import read_normal_map
+
     mat, png = root / GT_NAMES[0], root / GT_NAMES[1]
-    if mat.is_file():
-        import scipy.io
-
-        try:
-            d = scipy.io.loadmat(str(mat))
-        except Exception as e:  # scipy raises ValueError/TypeError/MatReadError on foreign files
-            why = str(e).splitlines()[0][:100] if str(e) else type(e).__name__
-            raise InputError(mat, f"cannot read the .mat file ({why})") from None
-        if "Normal_gt" not in d:
-            keys = sorted(k for k in d if not k.startswith("__"))
-            raise InputError(mat, f"no variable 'Normal_gt' (has: {', '.join(keys) or 'none'})")
-        n, src = np.asarray(d["Normal_gt"], dtype=np.float64), mat
-    elif png.is_file():
-        from msps_render.io.png16 import read_png
-
-        a = read_png(png)
-        if a.ndim != 3 or a.shape[2] < 3:
-            raise InputError(png, f"expected an RGB normal map, got shape {list(a.shape)}")
-        n = a[..., :3].astype(np.float64) / np.iinfo(a.dtype).max * 2.0 - 1.0
-        n[np.linalg.norm(n, axis=-1) < 0.5] = 0.0
-        src = png
-    else:
+    src = mat if mat.is_file() else png if png.is_file() else None
+    if src is None:
         raise InputError(mat, "missing, and no Normal_gt.png either: the benchmark needs ground-truth normals")
-    if n.shape != (*shape, 3):
-        raise InputError(src, f"ground truth has shape {list(n.shape)}; the images are {shape[1]}x{shape[0]} "
-                              f"(need {shape[0]}x{shape[1]}x3)")
-    n = np.where(np.isfinite(n).all(-1, keepdims=True), n, 0.0)
-    return n, src
+    return read_normal_map(src, shape)[0], src
 
 
 def parse_skip(skips, names: list[str]) -> dict[str, list[str]]:
@@ -205,143 +160,40 @@ def load_real_object(folder: str | Path, slant_deg: float = 30.0, tilts_deg=(0.0
 
 def lambertian_method() -> Method:
     """Calibrated Lambertian PS: the chosen lights' measured directions and the crosstalk matrix."""
-    from msps_render.models.baseline import lambertian_ps
-
-    return Method(LAMBERTIAN, lambda o: lambertian_ps(o.image, o.light_dirs, o.crosstalk, o.mask),
-                  {"kind": "calibrated Lambertian photometric stereo (measured light directions, crosstalk)"},
-                  network=False)
+    p = lambertian_predictor()
+    return Method(p.name, p)
 
 
-def with_selfcal(methods: list[Method]) -> list[Method]:
-    """Each method, then each again on the object's image after the albedo-colour self-calibration."""
-    from dataclasses import replace
-
-    from msps_render.models import selfcal
-
-    def twin(m: Method) -> Method:
-        def predict(o: RealObject) -> np.ndarray:
-            img = selfcal.self_calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)
-            return m.predict(replace(o, image=img))
-
-        return Method(m.name + selfcal.SUFFIX, predict,
-                      {**m.info, "kind": f"{m.info.get('kind', m.name)}, {selfcal.DESCRIPTION}"}, m.warnings,
-                      network=m.network, selfcal=True)
-
-    return list(methods) + [twin(m) for m in methods]
-
-
-def with_segments(methods: list[Method]) -> list[Method]:
-    """Each method without selfcal, then again after the object-level and segment-wise self-calibration."""
-    from dataclasses import replace
-
-    from msps_render.models import segments, selfcal
-
-    def twin(m: Method) -> Method:
-        def predict(o: RealObject) -> np.ndarray:
-            return m.predict(replace(o, image=segments.calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)))
-
-        return Method(m.name + selfcal.SUFFIX + segments.SUFFIX, predict,
-                      {**m.info, "kind": f"{m.info.get('kind', m.name)}, {segments.DESCRIPTION}"}, m.warnings,
-                      network=m.network, selfcal=True, segments=True)
-
-    return list(methods) + [twin(m) for m in methods if not m.selfcal]
-
-
-def with_netcal(methods: list[Method]) -> list[Method]:
-    """Each network without selfcal, then again after the object-level self-calibration and the colour read
-    off its own normals (NAME+selfcal+netcal; models/netcal.py)."""
-    from dataclasses import replace
-
-    from msps_render.models import netcal, selfcal
-
-    def twin(m: Method) -> Method:
-        def predict(o: RealObject) -> np.ndarray:
-            key = (o.name, id(o.image))  # the refinement twin shares `loops`: the loop runs once per object
-            if key not in t.loops:
-                img = selfcal.self_calibrated(o.image, o.mask, o.light_dirs, o.crosstalk)
-                n, img, _ = netcal.calibrate(lambda x: m.predict(replace(o, image=x)), img, o.mask,
-                                             o.crosstalk @ o.light_dirs)
-                t.loops[key] = (img, n)
-            return t.loops[key][1]
-
-        t = Method(m.name + selfcal.SUFFIX + netcal.SUFFIX, predict,
-                   {**m.info, "kind": f"{m.info.get('kind', m.name)}, {selfcal.DESCRIPTION}, {netcal.DESCRIPTION}"},
-                   m.warnings, network=True, selfcal=True, netcal=True)
-        return t
-
-    return list(methods) + [twin(m) for m in methods if m.network and not m.selfcal]
-
-
-def with_refine(methods: list[Method]) -> list[Method]:
-    """Each method, then each network again with the Lambertian refinement after it (models/refine.py)."""
-    from msps_render.models import refine
-
-    def twin(m: Method) -> Method:
-        def predict(o: RealObject) -> np.ndarray:
-            n = m.predict(o)  # first: a netcal method knows its image only after predicting
-            return refine.refine_normals(m.calibrated(o), o.mask, n, o.light_dirs, o.crosstalk)[0]
-
-        return Method(m.name + refine.SUFFIX, predict,
-                      {**m.info, "kind": f"{m.info.get('kind', m.name)}, {refine.DESCRIPTION}"}, m.warnings,
-                      network=True, selfcal=m.selfcal, segments=m.segments, netcal=m.netcal, loops=m.loops)
-
-    return list(methods) + [twin(m) for m in methods if m.network]
-
-
-def net_method(name: str, checkpoint: str | Path) -> Method:
-    """A dual-cue checkpoint through whole-image tiled prediction (`predict_image`)."""
+def warnings(p: Predictor, o: RealObject) -> list[str]:
+    """Caveats to print before scoring a predictor on an object (a network away from its trained lights)."""
     from msps_render.calibration import geometry_warnings
-    from msps_render.models.checkpoint import load_checkpoint
-    from msps_render.models.predict import predict_image
 
-    model, cfg, ck = load_checkpoint(checkpoint)
-
-    def predict(o: RealObject) -> np.ndarray:
-        if min(o.mask.shape) < 40:
-            raise InputError(o.root, f"composed image is {o.mask.shape[1]}x{o.mask.shape[0]}; "
-                                     "the network needs at least 40x40")
-        return predict_image(model, o.image, o.mask, rig=o.crosstalk @ o.light_dirs)
-
-    def warnings(o: RealObject) -> list[str]:
-        return [f"{name} on {o.name}: {w}" for w in geometry_warnings(o.light_dirs, o.crosstalk,
-                                                                      ck.get("train_lights"))]
-
-    return Method(name, predict, {"kind": "dual-cue network", "checkpoint": str(Path(checkpoint).resolve()),
-                                  "preset": cfg.preset}, warnings)
-
-
-def parse_checkpoints(specs) -> list[tuple[str, Path]]:
-    """--checkpoint NAME=PATH or PATH (name: the file's stem); none: net = the shipped checkpoint."""
-    from msps_render.models.predict import default_checkpoint
-
-    if not specs:
-        return [("net", default_checkpoint())]
-    out: list[tuple[str, Path]] = []
-    for s in specs:
-        name, _, path = str(s).partition("=") if "=" in str(s) else (Path(str(s)).stem, "=", str(s))
-        name = name.strip()
-        if not name or not path.strip():
-            raise InputError("--checkpoint", f"'{s}': expected NAME=PATH")
-        if name == LAMBERTIAN or name in [n for n, _ in out]:
-            raise InputError("--checkpoint", f"'{s}': method name '{name}' is "
-                                             f"{'the baseline' if name == LAMBERTIAN else 'given twice'}")
-        p = Path(path.strip())
-        if not p.is_file():
-            raise InputError(p, "checkpoint not found")
-        out.append((name, p))
-    return out
+    if not p.network:
+        return []
+    return [f"{p.name} on {o.name}: {w}" for w in geometry_warnings(o.light_dirs, o.crosstalk, p.train_lights)]
 
 
 def _stats(err: np.ndarray) -> dict:
     return {"mae_deg": float(err.mean()), "median_deg": float(np.median(err)), "n_pixels": int(err.size)}
 
 
-def evaluate_real(objects: list[RealObject], methods: list[Method], warn=None) -> RealBench:
+def check_sizes(objects: list[RealObject], methods: list[Method]) -> None:
+    """A network needs at least one 40x40 tile: refuse smaller composed images before any work."""
+    if any(m.predictor.network for m in methods):
+        for o in objects:
+            if min(o.mask.shape) < 40:
+                raise InputError(o.root, f"composed image is {o.mask.shape[1]}x{o.mask.shape[0]}; "
+                                         "the network needs at least 40x40")
+
+
+def evaluate_real(objects: list[RealObject], methods: list[Method], warn=None, bar=None) -> RealBench:
     """Every method on every object: per object MAE/median over the scored pixels, the mean over objects
-    (and of the per-object ratio to Lambertian), and the pixel-pooled statistics."""
+    (and of the per-object ratio to Lambertian), and the pixel-pooled statistics.  Methods on one object
+    share work (`Memo`: one colour fit, one prediction per distinct input)."""
     from msps_render.models.metrics import angular_error_deg
 
     warn = warn or (lambda msg: None)
+    check_sizes(objects, methods)
     per: dict = {}
     normals: dict = {}
     errors: dict = {}
@@ -350,15 +202,20 @@ def evaluate_real(objects: list[RealObject], methods: list[Method], warn=None) -
         v = o.valid
         rows = {}
         normals[o.name], errors[o.name] = {}, {}
+        memo, warned = Memo(), set()
         for m in methods:
-            for w in m.warnings(o):
-                warn(w)
-            n = np.asarray(m.predict(o), np.float64)
+            if id(m.predictor) not in warned:
+                warned.add(id(m.predictor))
+                for w in warnings(m.predictor, o):
+                    warn(w)
+            n = np.asarray(run(m, o.image, o.mask, o.rig, memo).normals, np.float64)
             e = np.full(o.mask.shape, np.nan)
             e[v] = angular_error_deg(n[v], o.normal_gt[v])
             normals[o.name][m.name], errors[o.name][m.name] = n, e
             rows[m.name] = _stats(e[v])
             pooled[m.name].append(e[v])
+        if bar:
+            bar.advance()
         if LAMBERTIAN in rows:
             for k, r in rows.items():
                 r["ratio_to_lambertian"] = r["mae_deg"] / max(rows[LAMBERTIAN]["mae_deg"], 1e-12)
@@ -492,13 +349,14 @@ def write_report(bench: RealBench, objects: list[RealObject], out: Path, setting
     return files
 
 
-def run_bench_real(folders, out: str | Path, checkpoints=(), slant_deg: float = 30.0,
-                   tilts_deg=(0.0, 120.0, 240.0), crosstalk: np.ndarray | None = None, skip=(),
-                   srgb: bool = False, warn=None, selfcal: bool = False, refine: bool = False,
-                   segments: bool = False, netcal: bool = False) -> RealBench:
-    """Validate OUT and every folder, load every checkpoint, evaluate, then write OUT all-or-nothing."""
+def run_bench_real(folders, out: str | Path, checkpoints=(), columns: list[Steps] | None = None, *,
+                   slant_deg: float = 30.0, tilts_deg=(0.0, 120.0, 240.0), crosstalk: np.ndarray | None = None,
+                   skip=(), srgb: bool = False, warn=None, progress: bool = False) -> RealBench:
+    """Validate OUT and every folder, load every checkpoint, evaluate every checkpoint and the baseline
+    under every steps value in `columns` (default: `DEFAULT_PHOTOS`), then write OUT all-or-nothing."""
     from msps_render.calibration import PAPER_CROSSTALK
     from msps_render.io.staging import check_new_out, staged_dir
+    from msps_render.progress import Bar
 
     out = Path(out)
     check_new_out(out)
@@ -511,22 +369,18 @@ def run_bench_real(folders, out: str | Path, checkpoints=(), slant_deg: float = 
             raise InputError(f, f"object name '{n}' given twice (two folders with the same name)")
     M = PAPER_CROSSTALK.copy() if crosstalk is None else np.asarray(crosstalk, np.float64)
     skips = parse_skip(skip, names)
-    specs = parse_checkpoints(checkpoints)
+    columns = columns or [DEFAULT_PHOTOS]
+    methods = make_methods(resolve_predictors(checkpoints, [NET, LAMBERTIAN]), columns)
     objects = [load_real_object(f, slant_deg, tilts_deg, M, skips[n], srgb, name=n) for f, n in zip(folders, names)]
-    methods = [net_method(n, p) for n, p in specs] + [lambertian_method()]
-    if selfcal:
-        methods = with_selfcal(methods)
-    if segments:
-        methods = with_segments(methods)  # twins of the methods without selfcal only
-    if netcal:
-        methods = with_netcal(methods)  # ... of the networks without selfcal only
-    if refine:
-        methods = with_refine(methods)
-    bench = evaluate_real(objects, methods, warn)
+    for c in columns:  # every step's needs, before any work (and any progress line)
+        for o in objects:
+            c.check(True, o.rig)
+    check_sizes(objects, methods)
+    with Bar(progress) as bar:
+        bench = evaluate_real(objects, methods, warn, bar.task("objects", len(objects)))
     settings = {"slant_deg": float(slant_deg), "tilts_deg": [float(t) for t in tilts_deg],
                 "crosstalk": M.tolist(), "srgb": bool(srgb), "skip": [str(s) for s in skip or ()],
-                "selfcal": bool(selfcal), "segments": bool(segments), "netcal": bool(netcal),
-                "refine": bool(refine)}
+                "steps": [str(c) for c in columns], **{n: any(n in c for c in columns) for n in STEPS}}
     with staged_dir(out) as stage:
         write_report(bench, objects, stage, settings)
     bench.summary["settings"] = settings

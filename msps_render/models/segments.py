@@ -31,7 +31,7 @@ DESCRIPTION = "after the object-level and the segment-wise albedo self-calibrati
 
 @dataclass(frozen=True)
 class SegmentSettings:
-    """Chosen on the validation frames by benchmarks/segment_sweep.py (docs/history.md "Stage 12"):
+    """Chosen on the validation frames by experiments/segment_sweep.py (docs/history.md "Stage 12"):
     the lowest val-frames-texture error with val-frames-grey and -colour no worse than +0.10 deg."""
 
     edge: float = 0.06  # |grad log c| (max over channels, per pixel) above this: a colour edge

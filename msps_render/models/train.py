@@ -15,7 +15,7 @@ over `max_minutes`), so a short run still draws a curve.  Checkpoints are `model
 needed to resume the same schedule (optimizer, step, epoch, position, RNG state).
 Fine-tuning a checkpoint on another corpus mix (`--init`): `train.freeze_bn` keeps its
 BatchNorm statistics, which otherwise follow the corpus of the latest batches
-(docs/reproducing.md, stages 4 and 5).
+(docs/history.md, stages 4 and 5).
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Choose the segment-wise self-calibration's thresholds on validation frames (docs/history.md "Stage 12").
 
-    python benchmarks/segment_sweep.py --data data/val-frames-texture --data data/val-frames-grey \
+    python experiments/segment_sweep.py --data data/val-frames-texture --data data/val-frames-grey \
         --data data/val-frames-colour --model models/dualcue-cpu-v0.4.pt --out runs/segment-sweep.json
 
 Pipeline: selfcal -> [segment-wise fit] -> network -> refine, pixel-pooled MAE per set.  The regions'

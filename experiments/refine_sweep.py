@@ -1,6 +1,6 @@
 """Choose the Lambertian refinement's thresholds on validation frames (docs/history.md "Stage 8").
 
-    python benchmarks/refine_sweep.py --data data/val-frames --data data/val-frames-grey \
+    python experiments/refine_sweep.py --data data/val-frames --data data/val-frames-grey \
         --data data/val-frames-colour --model models/dualcue-cpu-v0.4.pt --out runs/8-valsweep.json
 
 Predicts every frame once (after the albedo-colour self-calibration, as `--selfcal --refine` does), then

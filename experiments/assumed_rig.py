@@ -1,6 +1,6 @@
 """Whole-image steps under a rig that is not the one assumed: the nominal rig given, another one true.
 
-    python benchmarks/assumed_rig.py --data data/unseen-rig-crosstalk --data data/unseen-rig-jitter \
+    python experiments/assumed_rig.py --data data/unseen-rig-crosstalk --data data/unseen-rig-jitter \
         --model v0.4=models/dualcue-cpu-v0.4.pt --out runs/assumed-rig
 
 A user states the paper's rig (slant 30 deg, tilts 0/120/240, crosstalk 0.92/0.04); the frames of the
@@ -39,7 +39,7 @@ def main(argv=None) -> None:
     M = PAPER_CROSSTALK
     models = {n: load_checkpoint(p)[0] for n, p in (s.split("=", 1) for s in a.model)}
     result: dict = {"nominal": {"light_dirs": L.tolist(), "crosstalk": M.tolist()}, "data": {}}
-    md = ["Pixel-pooled MAE (deg), every step given the nominal rig (benchmarks/assumed_rig.py)", ""]
+    md = ["Pixel-pooled MAE (deg), every step given the nominal rig (experiments/assumed_rig.py)", ""]
     for d in a.data:
         conds = [c.name for c in load_manifest(d).conditions]
         errs: dict = defaultdict(lambda: defaultdict(list))

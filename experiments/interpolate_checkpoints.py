@@ -6,7 +6,7 @@ chroma. Writes a checkpoint whose floating-point weights are ``(1 - alpha) * A +
 (integer buffers such as BatchNorm counters are taken from B) and whose metadata records
 both parents and alpha; it loads wherever a checkpoint does.
 
-    python benchmarks/interpolate_checkpoints.py models/dualcue-cpu-v0.4.pt runs/colour/last.pt \
+    python experiments/interpolate_checkpoints.py models/dualcue-cpu-v0.4.pt runs/colour/last.pt \
         --alpha 0.5 --out runs/soup-0.5.pt
 """
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """An upper bound for `--segments`: the same per-region fit, given the TRUE colour regions.
 
-    python benchmarks/segment_oracle.py --data data/unseen-test-patches --model models/dualcue-cpu-v0.4.pt
+    python experiments/segment_oracle.py --data data/unseen-test-patches --model models/dualcue-cpu-v0.4.pt
 
 Not a method and it chooses nothing: the regions come from the frame's ground-truth albedo (rounded to
 3 decimals; regions >= 300 pixels), each gets the unit-norm fit of models/selfcal.py (unnormalised, so

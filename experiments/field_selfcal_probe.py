@@ -1,6 +1,6 @@
 """Can the unit length of the normals pin a *spatially varying* albedo colour, as it pins a uniform one?
 
-    python benchmarks/field_selfcal_probe.py --data data/unseen-test-smooth --data data/unseen-test-patches \
+    python experiments/field_selfcal_probe.py --data data/unseen-test-smooth --data data/unseen-test-patches \
         --out runs/field-selfcal.json
 
 A probe, not a method (docs/history.md "Stage 11").  `models/selfcal.py` fits one albedo

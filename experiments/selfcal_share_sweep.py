@@ -1,6 +1,6 @@
 """Choose the self-calibration's one-albedo share (selfcal.MIN_SHARE) on validation frames (docs/history.md "Stage 9").
 
-    python benchmarks/selfcal_share_sweep.py --data data/val-frames --data data/val-frames-grey \
+    python experiments/selfcal_share_sweep.py --data data/val-frames --data data/val-frames-grey \
         --data data/val-frames-colour --model models/dualcue-cpu-v0.4.pt --out runs/9-valsweep.json
 
 Fits every frame once with no share condition, predicts the image as rendered and, where the fit

@@ -1,6 +1,6 @@
 """Choose the network-colour loop's settings on validation frames (docs/history.md "Stage 13").
 
-    python benchmarks/netcal_sweep.py --data data/val-frames --data data/val-frames-grey \
+    python experiments/netcal_sweep.py --data data/val-frames --data data/val-frames-grey \
         --data data/val-frames-colour --data data/val-frames-texture --model models/dualcue-cpu.pt \
         --out runs/netcal-sweep.json
 

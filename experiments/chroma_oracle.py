@@ -1,6 +1,6 @@
 """How well must a textured object's albedo colour be known for the Lambertian closed form to help?
 
-    python benchmarks/chroma_oracle.py --data data/unseen-test-smooth --data data/unseen-test-patches \
+    python experiments/chroma_oracle.py --data data/unseen-test-smooth --data data/unseen-test-patches \
         --data data/unseen-test-grey --model models/dualcue-cpu-v0.4.pt --out runs/chroma-oracle.json
 
 An upper bound, not a method: each frame's ground-truth albedo chromaticity (log albedo minus its

@@ -1,7 +1,7 @@
 """Probe, not built: the network-colour loop per colour region instead of per object (docs/history.md
 "Stage 13").  Validation frames only.
 
-    python benchmarks/netcal_regions_probe.py --data data/val-frames --data data/val-frames-texture \
+    python experiments/netcal_regions_probe.py --data data/val-frames --data data/val-frames-texture \
         --data data/val-frames-colour --data data/val-frames-grey --model models/dualcue-cpu.pt
 
 Per frame: selfcal -> network -> refine ("base"); the object-level loop (models/netcal.py, "netcal");
