@@ -113,7 +113,7 @@ def test_cli_writes_the_report_and_skip_is_recorded(tmp_path):
     make_capture(tmp_path / "bPNG", seed=2)
     out = tmp_path / "out"
     r = cli("bench-real", tmp_path / "aPNG", tmp_path / "bPNG", "--out", out, "--skip", "b/002.png",
-            "--threads", "1", env_extra={"OMP_NUM_THREADS": "1"})
+            "--steps", "none", "--threads", "1", env_extra={"OMP_NUM_THREADS": "1"})
     assert r.returncode == 0, r.stderr
     assert "| a |" in r.stdout and "**mean**" in r.stdout
     res = json.loads((out / "results.json").read_text())
@@ -195,7 +195,8 @@ def test_diligent_numbers_reproduce(tmp_path):
     folders = [DILIGENT / f"{o}PNG" for o in DILIGENT_LAMBERTIAN]
     if not all(f.is_dir() for f in folders):
         pytest.skip("a DiLiGenT object folder is missing")
-    r = cli("bench-real", *folders, "--out", out, "--threads", "1", env_extra={"OMP_NUM_THREADS": "1"})
+    r = cli("bench-real", *folders, "--out", out, "--steps", "none", "--threads", "1",
+            env_extra={"OMP_NUM_THREADS": "1"})
     assert r.returncode == 0, r.stderr
     res = json.loads((out / "results.json").read_text())
     for o, want in DILIGENT_LAMBERTIAN.items():
@@ -231,9 +232,10 @@ def test_diligent_numbers_reproduce(tmp_path):
         assert abs(mae - DILIGENT_NET_UNMASKED[obj.name]) < 0.1, (obj.name, mae)
 
 
-# `--netcal` with the shipped checkpoint (v0.5): the colour read off the network's normals, one round
-# (models/netcal.py; settings chosen on validation frames, docs/history.md "Stage 13").  goblet: the
-# agreement gate refuses it (a metal's ratios spread), so it keeps the network's number.
+# The default steps of bench-real (`selfcal+netcal`, chosen by docs/history.md "Stage 14") with the shipped
+# checkpoint (v0.5): the colour read off the network's normals, one round (models/netcal.py; settings chosen
+# on validation frames, "Stage 13").  goblet: the agreement gate refuses it (a metal's ratios spread), so
+# it keeps the network's number.  The old `--netcal` flag gives the same column beside the raw network.
 DILIGENT_NETCAL = {"ball": 4.53, "cat": 12.18, "pot1": 14.35, "goblet": 17.69}
 
 
@@ -243,10 +245,10 @@ def test_diligent_netcal_numbers_reproduce(tmp_path):
     if not all(f.is_dir() for f in folders):
         pytest.skip("a DiLiGenT object folder is missing")
     out = tmp_path / "bench"
-    r = cli("bench-real", *folders, "--out", out, "--netcal", "--threads", "1", env_extra={"OMP_NUM_THREADS": "1"})
+    r = cli("bench-real", *folders, "--out", out, "--threads", "1", env_extra={"OMP_NUM_THREADS": "1"})
     assert r.returncode == 0, r.stderr
     res = json.loads((out / "results.json").read_text())
-    assert res["settings"]["netcal"] is True
+    assert list(res["methods"]) == ["net+selfcal+netcal", "lambertian"]  # no flag: the default steps
     for o, want in DILIGENT_NETCAL.items():
         got = res["objects"][o]["methods"]
         assert abs(got["net+selfcal+netcal"]["mae_deg"] - want) < 0.1, (o, got)

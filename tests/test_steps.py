@@ -129,3 +129,21 @@ def test_eval_steps_columns_equal_the_old_flags(tmp_path):
     assert list(got["steps"]["methods"]) == list(got["flag"]["methods"]) == ["lambertian", "lambertian+selfcal"]
     assert got["steps"]["table"] == got["flag"]["table"]
     assert got["steps"]["methods"]["lambertian+selfcal"]["steps"] == "selfcal"
+
+
+def test_the_defaults_are_the_validated_chains_and_skip_nothing_silently():
+    """docs/history.md "Stage 14": photographs selfcal+netcal, rendered sets selfcal+segments+refine.  Under a
+    default the baseline runs without steps (it cannot take netcal or refine); asked for explicitly, a
+    network-only step with no network is one line."""
+    from msps_render.errors import InputError
+    from msps_render.models.predict import predict_method
+    from msps_render.models.runner import default_checkpoint, lambertian_predictor, checkpoint_predictor, methods
+    from msps_render.models.steps import DEFAULT_PHOTOS, DEFAULT_RENDERED, Steps
+
+    assert DEFAULT_PHOTOS == Steps.parse("selfcal+netcal") and DEFAULT_RENDERED == Steps.parse("selfcal+segments+refine")
+    net, lam = checkpoint_predictor(default_checkpoint()), lambertian_predictor()
+    assert [m.name for m in methods([net, lam], [DEFAULT_RENDERED])] == ["net+selfcal+segments+refine", "lambertian"]
+    assert [str(m.steps) for m in methods([lam], [DEFAULT_PHOTOS])] == ["none"]
+    assert str(predict_method("lambertian").steps) == "none" and str(predict_method().steps) == "selfcal+netcal"
+    with pytest.raises(InputError, match="refine"):
+        methods([lam], [Steps.parse("selfcal+refine")])

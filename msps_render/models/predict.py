@@ -135,7 +135,7 @@ def predict_method(kind: str = NET, checkpoint: str | Path | None = None, steps:
     if kind not in (NET, LAMBERTIAN):
         raise InputError("--method", f"unknown method '{kind}' (net or lambertian)")
     p = lambertian_predictor() if kind == LAMBERTIAN else checkpoint_predictor(checkpoint or default_checkpoint())
-    return Method(p.name, p, steps)
+    return Method(p.name, p, steps.for_predictor(p.network) or steps)  # or: refused by its check, one line
 
 
 def predict_main(image: str | Path, out: str | Path, method: Method | None = None, rig: Rig | None = None, *,

@@ -146,8 +146,10 @@ def methods(predictors: list[Predictor], columns: list[Steps], remedy: str = "gi
     that needs a network's normals skips the baseline, and refuses when no predictor is a network."""
     network = any(p.network for p in predictors)
     for steps in columns:
-        steps.check_network(network, remedy)
-    out = [Method(p.name + s.suffix, p, s) for s in columns for p in predictors if s.fits_network(p.network)]
+        if not steps.default:
+            steps.check_network(network, remedy)
+    out = [Method(p.name + t.suffix, p, t) for s in columns for p in predictors
+           if (t := s.for_predictor(p.network)) is not None]
     names = [m.name for m in out]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
