@@ -177,8 +177,11 @@ def test_method_names_and_errors(setup):
     from msps_render.errors import InputError
     from msps_render.models.evaluate import resolve_methods
 
-    ms = resolve_methods([setup["a"], setup["b"]], [])
+    from msps_render.models.steps import DEFAULT_RENDERED, Steps
+
+    ms = resolve_methods([setup["a"], setup["b"]], [], [Steps()])  # the raw networks: names alone
     assert ms[0].name == "net" and ms[1].name.startswith("net ") and ms[1].name.endswith("/b")
+    assert resolve_methods([setup["a"]], [])[0].name == "net" + DEFAULT_RENDERED.suffix  # eval's default steps
     assert [m.name for m in resolve_methods([], ["lambertian"])] == ["lambertian"]
     with pytest.raises(InputError, match="given twice"):
         resolve_methods([f"x={setup['a']}", f"x={setup['b']}"])

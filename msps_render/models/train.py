@@ -4,7 +4,7 @@ Joint (end-to-end) training is the default: the total loss is L_scn on the
 coarse normal plus L_pcn on the final normal, so the SCN learns structure while
 the PCN learns to correct it per pixel. (Staged SCN->PCN training is the same
 loop run twice with `net.mode = "scn"` then `"dual"`; joint was simpler and
-reached lower validation error at equal time in our runs: docs/reproducing.md.)
+reached lower validation error at equal time in our runs: docs/history.md.)
 
 `train()` composes small steps, PS-FCN style: `open_data`, `build_model`,
 `start_run` (new, resumed or warm-started), then `fit`: per batch `set_lr` +
