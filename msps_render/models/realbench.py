@@ -229,14 +229,17 @@ def evaluate_real(objects: list[RealObject], methods: list[Method], warn=None, b
         rs = [per[o.name]["methods"][m.name] for o in objects]
         mean[m.name] = {"mae_deg": float(np.mean([r["mae_deg"] for r in rs])),
                         "median_deg": float(np.mean([r["median_deg"] for r in rs]))}
-        if all("ratio_to_lambertian" in r for r in rs):
-            mean[m.name]["ratio_to_lambertian"] = float(np.mean([r["ratio_to_lambertian"] for r in rs]))
         allerr = np.concatenate(pooled[m.name]) if pooled[m.name] else np.zeros(0)
         pool[m.name] = _stats(allerr) if allerr.size else {"n_pixels": 0}
+    lam = mean.get(LAMBERTIAN, {}).get("mae_deg")
+    for m in methods:  # one definition of "ratio" everywhere: a ratio of means (mean MAE / Lambertian's mean MAE)
+        if lam and all("ratio_to_lambertian" in per[o.name]["methods"][m.name] for o in objects):
+            mean[m.name]["ratio_to_lambertian"] = mean[m.name]["mae_deg"] / max(lam, 1e-12)
     summary = {"format": FORMAT, "note": VALIDATION_NOTE,
                "metric": "angular error (deg) over mask pixels with a non-zero ground-truth normal",
                "methods": {m.name: m.info for m in methods}, "objects": per,
-               "mean": {**mean, "note": "mean over objects of each object's MAE / median / ratio to Lambertian"},
+               "mean": {**mean, "note": "mean over objects of each object's MAE and median; ratio to Lambertian: the "
+                                       "ratio of means (this mean MAE / Lambertian's mean MAE)"},
                "pooled": {**pool, "note": "all scored pixels of all objects together"}}
     return RealBench(summary, normals, errors)
 
@@ -301,8 +304,9 @@ def write_report(bench: RealBench, objects: list[RealObject], out: Path, setting
           f"{st.get('slant_deg', 30):g} deg, tilts {'/'.join(f'{t:g}' for t in st.get('tilts_deg', (0, 120, 240)))} "
           "deg, each divided by its light intensity and mixed through the crosstalk matrix (as `msps compose`). "
           "Angular error in degrees, MAE (median), over mask pixels with a non-zero ground-truth normal; "
-          "'left out': mask pixels whose ground-truth normal is zero.  Mean: over objects (of the MAEs, "
-          "medians and per-object ratios to Lambertian); pooled: all scored pixels together.", ""]
+          "'left out': mask pixels whose ground-truth normal is zero.  Mean: over objects (of the MAEs and "
+          "medians); its ratio is the ratio of means (mean MAE / Lambertian's mean MAE); pooled: all scored "
+          "pixels together.", ""]
     md += _table(s, methods)
     md += [""] + [f"- `{m}`: {', '.join(f'{k} {v}' for k, v in s['methods'][m].items())}" for m in methods] + [""]
     (out / "results.md").write_text("\n".join(md))
