@@ -118,7 +118,9 @@ def patch_normals(m: Method, j: int, b, fits: list[list[FrameFit]] | None, memo:
         image = image * torch.from_numpy(factor.transpose(0, 3, 1, 2).astype(np.float32))
     img, mk = image.numpy().transpose(0, 2, 3, 1), b["mask"].numpy()[:, 0] > 0
     rigs = [Rig(L.numpy(), M.numpy()) for L, M in zip(b["light_dirs"], b["crosstalk"])]
-    matrices, p = b["crosstalk"] @ b["light_dirs"], m.predictor
+    from msps_render.models.net import rig_matrix  # torch: imported only when patches are scored
+
+    matrices, p = rig_matrix(b["light_dirs"], b["crosstalk"]), m.predictor
     predict = lambda x, k: memo.call((id(p),), lambda a, c: p.patches(a, c, rigs, matrices), x, k)  # noqa: E731
     for step in m.steps.stage("predictor"):
         predict = step.batch(predict, rigs)

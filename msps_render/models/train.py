@@ -37,7 +37,7 @@ from msps_render.models.accel import CPU, Accel, resolve_accel
 from msps_render.models.checkpoint import load_checkpoint, save_checkpoint
 from msps_render.models.losses import total_loss
 from msps_render.models.metrics import angular_error
-from msps_render.models.net import DualCueNet, count_parameters, widen_inputs
+from msps_render.models.net import DualCueNet, count_parameters, rig_matrix, widen_inputs
 from msps_render.models.presets import ModelConfig
 
 
@@ -200,8 +200,8 @@ def _adds_input_cues(old, new) -> bool:
 
 
 def batch_rig(batch: dict) -> torch.Tensor:
-    """(B, 3, 3) crosstalk @ light_dirs of a batch (what a `lambert_cue` net takes)."""
-    return batch["crosstalk"] @ batch["light_dirs"]
+    """(B, 3, 3) rig matrix of a batch (what a `lambert_cue` net takes; `net.rig_matrix`, the one spelling)."""
+    return rig_matrix(batch["light_dirs"], batch["crosstalk"])
 
 
 def set_train_mode(model: torch.nn.Module, freeze_bn: bool) -> None:
