@@ -182,3 +182,13 @@ def test_eval_reuses_the_frame_loop_exactly(tmp_path, monkeypatch):
         assert len(calls) <= 3  # the image as rendered, after selfcal, after the loop's colour: once each
         for m, got in zip(methods, shared):
             np.testing.assert_array_equal(got, run(m, fr.image, fr.mask, rig).normals)
+
+def test_eval_default_steps_without_whole_frames_fall_back_with_one_warning(tmp_path):
+    """Plain `msps eval` (default steps, which fit whole frames) on a corpus stored without frames scores
+    the raw network and says so in one warning line; the same steps asked for still refuse (above)."""
+    render_tiny(COLOUR_SET.replace("store_frames = true", "store_frames = false"), tmp_path)
+    r = cli("eval", "--data", tmp_path / "ds", "--out", tmp_path / "ev")
+    assert r.returncode == 0, r.stderr
+    warns = [ln for ln in r.stderr.splitlines() if ln.startswith("warning:")]
+    assert len(warns) == 1 and "no whole frames" in warns[0] and "--steps none" in warns[0], r.stderr
+    assert list(json.loads((tmp_path / "ev" / "metrics.json").read_text())["methods"]) == ["net"]

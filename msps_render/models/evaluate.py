@@ -158,6 +158,22 @@ def _whole_frame_step(methods: list[Method]) -> str | None:
     return None
 
 
+def _defaults_without_frames(methods: list[Method], data: Path, conditions: list[str]) -> list[Method]:
+    """A default (not asked-for) chain of whole-image steps cannot run on a dataset without whole frames:
+    those methods are scored raw instead, with one warning line, so plain `msps eval` works on any corpus
+    (asked for with --steps, the same steps still refuse with one line)."""
+    if not any(m.steps.default and m.steps.whole_image for m in methods) or \
+            all(_has_frames(data, c, None) for c in conditions):
+        return methods
+    import sys
+
+    raw = [Method(m.predictor.name, m.predictor, Steps()) if m.steps.default and m.steps.whole_image else m
+           for m in methods]
+    print(f"warning: {data}: no whole frames stored, which the default steps ({DEFAULT_RENDERED}) fit each "
+          "object on; scoring without steps (--steps none)", file=sys.stderr)
+    return raw
+
+
 def _has_frames(data: Path, cond: str, why: str | None) -> bool:
     """Whether the condition's whole frames are stored; `why` (a step that fits them) makes it required."""
     from msps_render.data import iter_frames
@@ -273,12 +289,13 @@ def evaluate(data: str | Path, out: str | Path, methods: list[Method] | None = N
     from msps_render.data import PatchDataset
 
     methods = methods or resolve_methods()
-    names = [m.name for m in methods]
-    if len(set(names)) != len(names):
-        raise InputError("--checkpoint", f"method names must differ: {', '.join(names)}")
     data, out = Path(data), Path(out)
     man = load_manifest(data, need_complete=False)
     conditions = [c.name for c in man.conditions]
+    methods = _defaults_without_frames(methods, data, conditions)
+    names = [m.name for m in methods]
+    if len(set(names)) != len(names):
+        raise InputError("--checkpoint", f"method names must differ: {', '.join(names)}")
     why = _whole_frame_step(methods)
     per = {n: {"conditions": {}} for n in names}
     units: dict = {}  # condition -> patches: (unit keys, (M, U) error sums, (U,) pixels); frames: rows
