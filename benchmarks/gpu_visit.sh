@@ -54,6 +54,10 @@ phase pytest 110 env MSPS_TEST_JIT=${MSPS_TEST_JIT:-cuda} python3 -m pytest -q -
   || true
 grep -E "^(PASSED|FAILED|SKIPPED|ERROR)|passed|failed" $LOG | tail -60 > $OUT/pytest.txt
 
+# 1b. the training step alone on the device (no loader): the model's ceiling, and how long cuDNN's first
+# steps take (the 2026-12-04 visit saw `msps train` record nothing in 35 s; this separates model from data)
+phase bench-train 120 python3 benchmarks/bench_train.py --device cuda --batch 24,256 --presets cpu,gpu,paper --steps 30
+
 # 2. CUDA vs carried LLVM renders
 phase gpu_check 90 python3 benchmarks/gpu_check.py check --ref .gpu/ref --out $W/gpu_check.json
 
