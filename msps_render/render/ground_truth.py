@@ -54,6 +54,20 @@ def _finish_geometry(normal, mask, depth, part, W: int, H: int):
             part.reshape(H, W))
 
 
+def _centre_hits(mi, scene, sensor, W: int, H: int):
+    """One ray per pixel centre (JIT variants): (ray, surface interaction, hit mask, shading normal
+    turned to face the camera) -- what every ground-truth path reads."""
+    import drjit as dr
+
+    idx = dr.arange(mi.UInt32, W * H)
+    pos = mi.Point2f((mi.Float(idx % W) + 0.5) / W, (mi.Float(idx // W) + 0.5) / H)
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
+    si = scene.ray_intersect(ray)
+    valid = si.is_valid()
+    n = si.sh_frame.n
+    return ray, si, valid, dr.select(dr.dot(n, ray.d) > 0, -n, n)
+
+
 def _cast_jit(mi, scene, spec: SceneSpec, shapes, part_of, appearance: bool):
     """One ray per pixel centre, every output evaluated in ONE kernel launch (`dr.eval` of all of
     them together): converting them to numpy one at a time re-traced the rays once per array.
@@ -64,15 +78,7 @@ def _cast_jit(mi, scene, spec: SceneSpec, shapes, part_of, appearance: bool):
     from msps_render.render.textures import ALBEDO, WEIGHT
 
     W, H = spec.camera.width, spec.camera.height
-    sensor = scene.sensors()[0]
-    idx = dr.arange(mi.UInt32, W * H)
-    x, y = idx % W, idx // W
-    pos = mi.Point2f((mi.Float(x) + 0.5) / W, (mi.Float(y) + 0.5) / H)
-    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
-    si = scene.ray_intersect(ray)
-    valid = si.is_valid()
-    n = si.sh_frame.n
-    n = dr.select(dr.dot(n, ray.d) > 0, -n, n)  # face the camera
+    ray, si, valid, n = _centre_hits(mi, scene, scene.sensors()[0], W, H)
     ids = dr.reinterpret_array(mi.UInt32, si.shape)
     z = spec.camera.distance - si.p.z
     outs = [valid, n, z, ids]
@@ -133,11 +139,7 @@ def appearance_truth(mi, scene, spec: SceneSpec) -> tuple[np.ndarray, np.ndarray
         return constant_appearance(spec, ground_truth(mi, scene, spec)[3])
     sensor = scene.sensors()[0]
     if dr.is_jit_v(mi.Float):
-        idx = dr.arange(mi.UInt32, W * H)
-        pos = mi.Point2f((mi.Float(idx % W) + 0.5) / W, (mi.Float(idx // W) + 0.5) / H)
-        ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
-        si = scene.ray_intersect(ray)
-        valid = si.is_valid()
+        _, si, valid, _ = _centre_hits(mi, scene, sensor, W, H)
         a = si.shape.eval_attribute_3(ALBEDO, si, valid)
         w = si.shape.eval_attribute_1(WEIGHT, si, valid)
         albedo = np.stack([np.array(a.x), np.array(a.y), np.array(a.z)], -1)
@@ -165,13 +167,7 @@ def pooled_truth(mi, scene, sensor, spec: SceneSpec, part_attribute: str):
     import drjit as dr
 
     W, H = spec.camera.width, spec.camera.height
-    idx = dr.arange(mi.UInt32, W * H)
-    pos = mi.Point2f((mi.Float(idx % W) + 0.5) / W, (mi.Float(idx // W) + 0.5) / H)
-    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
-    si = scene.ray_intersect(ray)
-    valid = si.is_valid()
-    n = si.sh_frame.n
-    n = dr.select(dr.dot(n, ray.d) > 0, -n, n)  # face the camera
+    _, si, valid, n = _centre_hits(mi, scene, sensor, W, H)
     part_f = si.shape.eval_attribute_1(part_attribute, si, valid)
     dr.eval(valid, n, si.p, part_f)
     R = np.asarray(spec.shape.rotation, dtype=np.float64)
