@@ -90,3 +90,14 @@ def test_slim_wheel_drops_what_it_should_and_keeps_a_consistent_record(tmp_path)
                      "mitsuba/plugins/gaussian.so", "mitsuba-0.dist-info/RECORD"}
     assert {ln.split(",")[0] for ln in record} == names
     assert "MI_VARIANTS = ['cuda_ad_rgb']" in config
+
+
+def test_a_requirement_not_installed_here_is_one_line(tmp_path, monkeypatch):
+    """The wheelhouse pins what is installed here; a requirement that is not installed stops the build with
+    one line naming it (before anything is downloaded), and neither the output folder nor a temporary
+    one is left."""
+    monkeypatch.setattr(W, "msps_requirements", lambda extras: ["numpy", "surely-not-a-package-msps>=1"])
+    with pytest.raises(SystemExit) as e:
+        W.main(["--out", str(tmp_path / "wh")])
+    assert str(e.value) == "error: surely-not-a-package-msps is required but not installed here; run scripts/setup.sh first"
+    assert list(tmp_path.iterdir()) == []
