@@ -18,6 +18,7 @@ exit 1, and the output folder is left as it was.
 from __future__ import annotations
 
 import argparse
+import ast
 import base64
 import hashlib
 import importlib.metadata as md
@@ -135,7 +136,7 @@ def slim_mitsuba(src: Path, dst: Path, variants=VARIANTS, plugins=PLUGINS) -> tu
 
 def _variants_in(config_py: bytes) -> list[str]:
     m = re.search(rb"MI_VARIANTS = (\[[^\]]*\])", config_py)
-    return eval(m.group(1).decode()) if m else []  # a literal list of strings written by Mitsuba's build
+    return ast.literal_eval(m.group(1).decode()) if m else []  # a list of strings written by Mitsuba's build
 
 
 def download(pins: dict[str, str], dest: Path, python: str | None, platforms: list[str]) -> None:
