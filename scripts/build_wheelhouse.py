@@ -109,8 +109,9 @@ def keeps(name: str, variants=VARIANTS, plugins=PLUGINS) -> bool:
 
 def slim_mitsuba(src: Path, dst: Path, variants=VARIANTS, plugins=PLUGINS) -> tuple[int, int]:
     """Rewrite the Mitsuba wheel keeping `variants` and `plugins` (each plugin .so holds every variant,
-    so plugins are kept or dropped whole); its config lists only the kept variants, so `mi.variants()`
-    tells the truth. srgb.coeff (8.9 MB) stays only when a spectral variant does. Returns (bytes in, out)."""
+    so plugins are kept or dropped whole); its config.py lists only the kept variants (`mi.variants()`
+    still names every variant of the build: a dropped one fails `set_variant` with ModuleNotFoundError,
+    which the variant probe reports). srgb.coeff (8.9 MB) stays only when a spectral variant does. Returns (bytes in, out)."""
     record_name = None
     lines = []
     with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as zout:
