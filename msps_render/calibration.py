@@ -59,8 +59,8 @@ def crosstalk_problem(M) -> str | None:
     a singular matrix makes the lights inseparable and demultiplexing impossible.
     """
     M = np.asarray(M, dtype=np.float64)
-    if M.ndim != 2 or M.shape[0] != 3 or M.shape[1] < 1:
-        return f"must be a 3xK matrix, got shape {M.shape}"
+    if M.ndim != 2 or M.shape[0] < 1 or M.shape[1] < 1:
+        return f"must be an MxK matrix (channels x lights), got shape {M.shape}"
     if not np.isfinite(M).all():
         return f"has {int((~np.isfinite(M)).sum())} NaN/inf entries"
     if (M < 0).any():
@@ -69,7 +69,7 @@ def crosstalk_problem(M) -> str | None:
     dead = [k for k in range(M.shape[1]) if M[:, k].sum() <= 0]
     if dead:
         return f"light {dead[0]} reaches no camera channel (column {dead[0]} is all zero)"
-    if M.shape[1] == 3:
+    if M.shape == (3, 3):
         sv = np.linalg.svd(M, compute_uv=False)
         if sv[-1] <= 1e-6 * sv[0]:
             return (f"is singular (rank {int((sv > 1e-6 * sv[0]).sum())}, condition number "

@@ -14,6 +14,7 @@ import numpy as np
 
 from msps_render.io.images import write_exr, write_png
 from msps_render.preview import normal_to_rgb8, srgb8, tonemap
+from msps_render.rig import Rig, rig_of_spec
 from msps_render.scene.spec import SceneSpec
 
 
@@ -32,6 +33,8 @@ class Frame:
     albedo: np.ndarray | None = None  # (H, W, 3) diffuse albedo at pixel centres (0: none, e.g. measured)
     blend: np.ndarray | None = None  # (H, W) weight of the second material of a measured blend
     meta: dict = field(default_factory=dict)
+    shots: np.ndarray | None = None  # (S, H, W, M) the rig's camera images (rig scenes: `spec.rig`)
+    points: np.ndarray | None = None  # (H, W, 3) surface point per pixel, camera frame (rigs with near lights)
 
     def __post_init__(self) -> None:
         H, W = self.mask.shape
@@ -47,6 +50,11 @@ class Frame:
         return np.array([l.direction for l in self.spec.lights], dtype=np.float64)
 
     @property
+    def rig(self) -> Rig:
+        """The true rig this frame was rendered with (`msps_render.rig`)."""
+        return rig_of_spec(self.spec)
+
+    @property
     def crosstalk(self) -> np.ndarray:
         """(3, K) M, M[i, k] = share of light k's signal in channel i (columns sum to 1).
 
@@ -54,6 +62,8 @@ class Frame:
         the lights' RGB with each column scaled to sum 1 -- the same convention as the sampler
         (RGB = irradiance * M[:, k]) and the spectral mode, so consumers never see two scales.
         """
+        if self.spec.rig is not None:  # (M, K): channel m's reading of light k at the object centre
+            return self.rig.crosstalk
         if self.spec.crosstalk is not None:
             return np.array(self.spec.crosstalk, dtype=np.float64)
         rgb = np.array([l.rgb for l in self.spec.lights], dtype=np.float64).reshape(-1, 3).T

@@ -169,9 +169,12 @@ def card_data(root: str | Path, max_patches: int = MAX_PATCHES) -> dict:
     for e in shards:
         acc.add_shard(man.shard_path(e.name), quota, rng)
     F = len(acc.slant)
-    dirs = np.concatenate(acc.dirs).reshape(-1, 3, 3) if F else np.zeros((0, 3, 3))
-    M = np.concatenate(acc.xtalk).reshape(-1, 3, 3) if F else np.zeros((0, 3, 3))
-    asym = np.abs(M - np.swapaxes(M, 1, 2)).reshape(len(M), -1).max(1) if len(M) else np.zeros(0)
+    dirs = np.concatenate(acc.dirs) if F else np.zeros((0, 3, 3))  # (F, N, 3)
+    M = np.concatenate(acc.xtalk) if F else np.zeros((0, 3, 3))  # (F, M, N) channels x lights
+    three = dirs.shape[1:] == (3, 3) and M.shape[1:] == (3, 3)  # the three-light rig: per-light histograms
+    asym = np.abs(M - np.swapaxes(M, 1, 2)).reshape(len(M), -1).max(1) if len(M) and three else np.zeros(0)
+    tilts = ({f"light{k}": histogram(tilt_deg(dirs[:, k]), 36, -5.0, 355.0) for k in range(dirs.shape[1])}
+             if three else {"all lights": histogram(tilt_deg(dirs.reshape(-1, 3)), 36, -5.0, 355.0)})
     conds = {}
     for c in [c.name for c in man.conditions]:
         es = man.shards_of(c)
@@ -193,9 +196,9 @@ def card_data(root: str | Path, max_patches: int = MAX_PATCHES) -> dict:
         "frames": {  # one value per frame: each totals `counts.frames`
             "condition": categories(acc.cond),
             "slant_deg": histogram(acc.slant, 20),
-            "tilt_deg": {f"light{k}": histogram(tilt_deg(dirs[:, k]), 36, -5.0, 355.0) for k in range(dirs.shape[1])},
+            "tilt_deg": tilts,
             "env_ratio": histogram(acc.env, 20, 0.0),
-            "crosstalk_diagonal": {f"channel{i}": histogram(M[:, i, i], 20) for i in range(M.shape[1])},
+            "crosstalk_diagonal": {f"channel{i}": histogram(M[:, i, i], 20) for i in range(M.shape[1])} if three else {},
             "crosstalk_asymmetry": histogram(asym, 20, 0.0),
             "spp": categories(str(s) for s in acc.spp),
             "shape_kind": categories(acc.shape_kind),

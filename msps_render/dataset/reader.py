@@ -43,14 +43,51 @@ def open_shard(path: str | Path, mode: str = "r", chunk_cache: bool = True):
     return h5py.File(path, mode) if chunk_cache else h5py.File(path, mode, rdcc_nbytes=0)
 
 
+def format_version(h) -> int:
+    """The shard's format version, or InputError naming the file when this msps cannot read it."""
+    v = h.attrs.get(K.ATTR_FORMAT_VERSION)
+    if v is None or int(v) not in K.READABLE_VERSIONS:
+        raise InputError(h.filename, f"unknown shard format version {v} (this msps reads "
+                                     f"{', '.join(map(str, K.READABLE_VERSIONS))}); a newer msps wrote it?")
+    return int(v)
+
+
+def rig_shape(h) -> tuple[int, int]:
+    """(images per patch, channels) of an open shard: (1, 3) for the three-light rig (format 1)."""
+    if format_version(h) == K.FORMAT_VERSION:
+        return 1, 3
+    shape = h[K.PATCH_IMAGE].shape
+    return int(shape[1]), int(shape[-1])
+
+
+def _three_light_image(h):
+    """The image array of a shard as the three-light readers see it, (N, P, P, 3): a format-2 shard of one
+    shot of three channels reads unchanged; any other rig is refused in one line."""
+    d = h[K.PATCH_IMAGE]
+    if d.ndim == 4:
+        format_version(h)
+        return d, d.shape
+    s, m = rig_shape(h)
+    if (s, m) != (1, 3):
+        raise InputError(h.filename, f"a rig shard of {s} image(s) x {m} channel(s) per patch; the dual-cue "
+                                     "network reads one 3-channel image per patch (train a classic-PS network "
+                                     "on this rig, or render a three-light rig)")
+    return d, (d.shape[0],) + d.shape[2:]
+
+
 def read_patches(h) -> dict[str, np.ndarray]:
-    """{'image', 'normal', 'mask'}: every patch of an open shard, decoded."""
-    return {name: h[key][()] for name, key in K.PATCH_ARRAYS.items()}
+    """{'image', 'normal', 'mask'}: every patch of an open shard, decoded (three-light readers)."""
+    img, shape = _three_light_image(h)
+    out = {name: h[key][()] for name, key in K.PATCH_ARRAYS.items() if name != "image"}
+    return {"image": img[()].reshape(shape), **out}
 
 
 def read_patch_layout(h) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
     """{'image', 'normal', 'mask'}: (shape, dtype) of an open shard's patch arrays, nothing decoded."""
-    return {name: (h[key].shape, h[key].dtype) for name, key in K.PATCH_ARRAYS.items()}
+    img, shape = _three_light_image(h)
+    out = {name: (h[key].shape, h[key].dtype) for name, key in K.PATCH_ARRAYS.items()}
+    out["image"] = (shape, img.dtype)
+    return out
 
 
 def read_patches_into(h, out: dict[str, np.ndarray]) -> None:
@@ -59,7 +96,10 @@ def read_patches_into(h, out: dict[str, np.ndarray]) -> None:
     for name, key in K.PATCH_ARRAYS.items():
         d = h[key]
         if len(d):
-            d.read_direct(out[name], dest_sel=np.s_[:len(d)])
+            if d.ndim == out[name].ndim:
+                d.read_direct(out[name], dest_sel=np.s_[:len(d)])
+            else:  # a one-shot format-2 shard: (N, 1, P, P, 3) into (N, P, P, 3) rows
+                d.read_direct(out[name][:len(d)].reshape(d.shape))
 
 
 def read_calibration(h) -> dict[str, np.ndarray]:

@@ -11,7 +11,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 1  # the three-light rig's shards (byte-identical to v0.6)
+RIG_FORMAT_VERSION = 2  # any rig: patches x shots x P x P x channels (docs/shard-format.md "Version 2")
+READABLE_VERSIONS = (FORMAT_VERSION, RIG_FORMAT_VERSION)
 COMPRESSIONS = ("lzf", "gzip", "zstd", "blosc2-lz4", "none")  # zstd and blosc2-lz4: hdf5plugin filters
 PATCH_CHUNK = 16  # patches per HDF5 chunk: small enough for cheap random access
 
@@ -24,6 +26,8 @@ PATCH_NORMAL = "patches/normal"  # (N, P, P, 3) camera frame
 PATCH_MASK = "patches/mask"  # (N, P, P) uint8
 PATCH_FRAME_INDEX = "patches/frame_index"  # (N,) int32
 PATCH_YX = "patches/yx"  # (N, 2) int32 top-left corner in the frame
+
+PATCH_POINTS = "patches/points"  # v2, near lights: (N, P, P, 3) float32 surface point (camera frame)
 
 # frames/*: one row per frame
 FRAME_LIGHT_DIRS = "frames/light_dirs"  # (F, 3, 3) rows = toward light k
@@ -41,6 +45,13 @@ FRAME_ALBEDO = "frames/albedo"  # (F, H, W, 3) float16, whole frames only: diffu
 FRAME_BLEND = "frames/blend"  # (F, H, W) float16, whole frames only: measured-blend weight
 FRAME_PER_LIGHT = "frames/per_light"  # (F, K, H, W, 3) image_dtype, store_per_light: light k alone
 FRAME_ENV_IMAGE = "frames/env_image"  # (F, H, W, 3) image_dtype, store_per_light: environment alone
+# version 2 (any rig): light_dirs (F, N, 3), crosstalk (F, M, N) channel-by-light, light_rgb (F, N, 3), and
+FRAME_LIGHT_POS = "frames/light_pos"  # (F, N, 3) point lights' positions, NaN rows: directional
+FRAME_NOMINAL_DIRS = "frames/nominal_light_dirs"  # (F, N, 3) the calibration's directions (before errors)
+FRAME_NOMINAL_CROSSTALK = "frames/nominal_crosstalk"  # (F, M, N) the calibration's channel-by-light matrix
+FRAME_SHOTS = "frames/shots"  # (F, S, H, W, M) whole frames' camera images (store_frames)
+FRAME_POINTS = "frames/points"  # (F, H, W, 3) whole frames' surface points (near lights, store_frames)
+FRAME_RIG_JSON = "frames/rig_json"  # utf-8: the frame's RigSpec (channels, shots, nominal lights)
 FRAME_SCENE_JSON = "frames/scene_json"  # utf-8 strings
 FRAME_OBJECT = "frames/object"
 FRAME_MATERIALS = "frames/materials"
@@ -52,6 +63,8 @@ ATTR_N_PATCHES = "n_patches"
 ATTR_N_FRAMES = "n_frames"
 ATTR_PATCH_SIZE = "patch_size"
 ATTR_COMPLETE = "complete"  # set last: a shard without it is partial
+ATTR_N_SHOTS = "n_shots"  # v2: images per patch
+ATTR_N_CHANNELS = "n_channels"  # v2: camera channels
 
 PATCH_ARRAYS = {"image": PATCH_IMAGE, "normal": PATCH_NORMAL, "mask": PATCH_MASK}
 STRING_ARRAYS = (FRAME_SCENE_JSON, FRAME_OBJECT, FRAME_MATERIALS, FRAME_CONDITION)
@@ -71,6 +84,7 @@ class Patches:
     normal: np.ndarray  # (N, P, P, 3) float32
     mask: np.ndarray  # (N, P, P) uint8
     yx: np.ndarray  # (N, 2) int32, top-left corner in the frame
+    points: np.ndarray | None = None  # (N, P, P, 3) surface points (rigs with near lights)
 
     def __len__(self) -> int:
         return len(self.yx)
@@ -84,8 +98,10 @@ class Patches:
     def concat(cls, parts: list["Patches"], size: int) -> "Patches":
         if not parts:
             return cls.empty(size)
+        points = np.concatenate([p.points for p in parts]) if all(p.points is not None for p in parts) else None
         return cls(image=np.concatenate([p.image for p in parts]), normal=np.concatenate([p.normal for p in parts]),
-                   mask=np.concatenate([p.mask for p in parts]), yx=np.concatenate([p.yx for p in parts]))
+                   mask=np.concatenate([p.mask for p in parts]), yx=np.concatenate([p.yx for p in parts]),
+                   points=points)
 
 
 @dataclass
@@ -111,6 +127,12 @@ class FrameRecord:
     blend: np.ndarray | None = None
     per_light: np.ndarray | None = None  # (K, H, W, 3) clean radiance of light k alone (store_per_light)
     env_image: np.ndarray | None = None  # (H, W, 3) the environment light alone; None: no environment
+    rig_json: str | None = None  # any rig (format 2): the RigSpec; None: the three-light rig (format 1)
+    light_pos: np.ndarray | None = None  # (N, 3), NaN rows: directional
+    nominal_dirs: np.ndarray | None = None  # (N, 3)
+    nominal_crosstalk: np.ndarray | None = None  # (M, N)
+    shots: np.ndarray | None = None  # (S, H, W, M) whole frame's camera images (store_frames)
+    points: np.ndarray | None = None  # (H, W, 3) whole frame's surface points (near lights, store_frames)
 
 
 @dataclass

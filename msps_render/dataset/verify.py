@@ -34,8 +34,9 @@ def verify_shard(path: str | Path, expected_sha256: str | None = None, normal_to
         with open_shard(path) as h:
             if not bool(h.attrs.get(K.ATTR_COMPLETE, False)):
                 problems.append("not complete (no complete flag)")
-            if h.attrs.get(K.ATTR_FORMAT_VERSION) != K.FORMAT_VERSION:
-                problems.append(f"format_version {h.attrs.get(K.ATTR_FORMAT_VERSION)} != {K.FORMAT_VERSION}")
+            if h.attrs.get(K.ATTR_FORMAT_VERSION) not in K.READABLE_VERSIONS:
+                problems.append(f"format_version {h.attrs.get(K.ATTR_FORMAT_VERSION)} is not one this msps reads "
+                                f"({', '.join(map(str, K.READABLE_VERSIONS))})")
             n = int(h.attrs.get(K.ATTR_N_PATCHES, -1))
             img = h[K.PATCH_IMAGE][()]
             nrm = h[K.PATCH_NORMAL][()].astype(np.float32)

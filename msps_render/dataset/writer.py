@@ -65,6 +65,8 @@ def shard_arrays(content: ShardContent, image_dtype: str = "float16", normal_dty
         K.PATCH_YX: p.yx.astype(np.int32),
     }
     fr = content.frames
+    if is_rig_content(content):
+        return _rig_arrays(content, arrays, image_dtype)
     arrays.update({
         K.FRAME_LIGHT_DIRS: np.array([f.light_dirs for f in fr], np.float32).reshape(-1, 3, 3),
         K.FRAME_CROSSTALK: np.array([f.crosstalk for f in fr], np.float32).reshape(-1, 3, 3),
@@ -90,6 +92,46 @@ def shard_arrays(content: ShardContent, image_dtype: str = "float16", normal_dty
                     image_dtype, "environment")
     strings = {K.FRAME_SCENE_JSON: [f.scene_json for f in fr], K.FRAME_OBJECT: [f.object for f in fr],
                K.FRAME_MATERIALS: [f.materials for f in fr], K.FRAME_CONDITION: [f.condition for f in fr]}
+    return arrays, strings
+
+
+def is_rig_content(content: ShardContent) -> bool:
+    """Format 2 (any rig) when the frames carry a RigSpec; format 1 (three-light, unchanged) otherwise."""
+    return any(f.rig_json is not None for f in content.frames)
+
+
+def _rig_arrays(content: ShardContent, arrays: dict, image_dtype: str):
+    """Format 2: the rig's lights per frame (N lights, M channels), whole frames' shots (docs/shard-format.md)."""
+    fr, p = content.frames, content.patches
+    if p.points is not None:
+        arrays[K.PATCH_POINTS] = p.points.astype(np.float32)
+    n = {len(f.light_dirs) for f in fr}
+    m = {np.asarray(f.crosstalk).shape[0] for f in fr}
+    if len(n) > 1 or len(m) > 1:
+        raise ValueError(f"frames of one shard must share the rig's size, got lights {sorted(n)}, channels {sorted(m)}")
+    arrays.update({
+        K.FRAME_LIGHT_DIRS: np.array([f.light_dirs for f in fr], np.float32),
+        K.FRAME_CROSSTALK: np.array([f.crosstalk for f in fr], np.float32),
+        K.FRAME_LIGHT_RGB: np.array([f.light_rgb for f in fr], np.float32),
+        K.FRAME_LIGHT_POS: np.array([f.light_pos for f in fr], np.float32),
+        K.FRAME_NOMINAL_DIRS: np.array([f.nominal_dirs for f in fr], np.float32),
+        K.FRAME_NOMINAL_CROSSTALK: np.array([f.nominal_crosstalk for f in fr], np.float32),
+        K.FRAME_SLANT_DEG: np.array([f.slant_deg for f in fr], np.float32),
+        K.FRAME_ENV_RATIO: np.array([f.env_ratio for f in fr], np.float32),
+        K.FRAME_ENV_ROTATION_DEG: np.array([f.env_rotation_deg for f in fr], np.float32),
+        K.FRAME_SPP: np.array([f.spp for f in fr], np.int32),
+        K.FRAME_SEED: np.array([f.frame_seed for f in fr], np.int64),
+    })
+    if fr and fr[0].image is not None:
+        arrays[K.FRAME_IMAGE] = np.stack([f.image for f in fr]).astype(np.float32)
+        arrays[K.FRAME_NORMAL] = np.stack([f.normal for f in fr]).astype(np.float32)
+        arrays[K.FRAME_MASK] = np.stack([f.mask for f in fr]).astype(np.uint8)
+        arrays[K.FRAME_SHOTS] = _radiance(np.stack([f.shots for f in fr]), image_dtype, "shot")
+        if all(f.points is not None for f in fr):
+            arrays[K.FRAME_POINTS] = np.stack([f.points for f in fr]).astype(np.float32)
+    strings = {K.FRAME_SCENE_JSON: [f.scene_json for f in fr], K.FRAME_RIG_JSON: [f.rig_json for f in fr],
+               K.FRAME_OBJECT: [f.object for f in fr], K.FRAME_MATERIALS: [f.materials for f in fr],
+               K.FRAME_CONDITION: [f.condition for f in fr]}
     return arrays, strings
 
 
@@ -120,7 +162,11 @@ def write_shard(path: str | Path, content: ShardContent, compression: str = "lzf
         with h5py.File(tmp, "w", driver="core", backing_store=True, track_order=True) as h:
             for k, v in sorted(content.attrs.items()):
                 h.attrs[k] = v
-            h.attrs[K.ATTR_FORMAT_VERSION] = K.FORMAT_VERSION
+            rig = is_rig_content(content)
+            h.attrs[K.ATTR_FORMAT_VERSION] = K.RIG_FORMAT_VERSION if rig else K.FORMAT_VERSION
+            if rig:
+                h.attrs[K.ATTR_N_SHOTS] = int(arrays[K.PATCH_IMAGE].shape[1]) if len(p) else 0
+                h.attrs[K.ATTR_N_CHANNELS] = int(np.asarray(fr[0].crosstalk).shape[0]) if fr else 0
             h.attrs[K.ATTR_N_PATCHES] = len(p)
             h.attrs[K.ATTR_N_FRAMES] = len(fr)
             h.attrs[K.ATTR_COMPLETE] = False

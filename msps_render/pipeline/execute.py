@@ -112,7 +112,8 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
                 albedo=frame.albedo if d.storage.store_frames else None,
                 blend=frame.blend if d.storage.store_frames else None,
                 per_light=frame.per_light if d.storage.store_per_light else None,
-                env_image=frame.env_image if d.storage.store_per_light else None))
+                env_image=frame.env_image if d.storage.store_per_light else None,
+                **rig_record(frame, d.storage.store_frames)))
         if timer is not None:
             timer.end_frame()
     P = d.patches.size
@@ -133,6 +134,20 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
     info.update(condition=task.condition, render_seconds=render_s, wall_seconds=time.perf_counter() - t0,
                 bytes=out.stat().st_size)  # lets status commands spot a truncated shard without hashing it
     return info
+
+
+def rig_record(frame, store_frames: bool) -> dict:
+    """The FrameRecord fields of a rig frame (format 2): true and nominal lights, whole-frame shots."""
+    spec = frame.spec
+    if spec.rig is None:
+        return {}
+    from msps_render.rig import nominal_rig_of_spec
+
+    true, nominal = frame.rig, nominal_rig_of_spec(spec)
+    pos = true.positions if true.positions is not None else np.full((true.n_lights, 3), np.nan)
+    return {"rig_json": spec.rig.model_dump_json(), "light_pos": pos, "nominal_dirs": nominal.light_dirs,
+            "nominal_crosstalk": nominal.crosstalk,
+            "shots": frame.shots if store_frames else None, "points": frame.points if store_frames else None}
 
 
 def _hash(s: str) -> str:

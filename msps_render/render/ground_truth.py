@@ -189,3 +189,26 @@ def constant_appearance(spec: SceneSpec, part: np.ndarray) -> tuple[np.ndarray, 
     for p, m in enumerate(spec.materials):
         albedo[part == p] = constant_albedo(m)
     return albedo, np.zeros(part.shape, np.float32)
+
+
+def pixel_points(camera, depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(H, W, 3) surface point of each pixel centre, camera frame (0 off the object), from the z-depth.
+
+    Why: near lights light each pixel from its own direction, l(x) = (p - x)/|p - x|; the point x is
+    exact from the pixel-centre ray (the same one the depth came from).  Orthographic: x, y are the
+    pixel centre on the view plane (half-extent `extent` on the smaller side, Mitsuba's orthographic
+    film); perspective: along the pixel-centre ray (field of view on the smaller side)."""
+    H, W = depth.shape
+    s = min(H, W)
+    u = (2.0 * (np.arange(W) + 0.5) - W) / s  # image right, in units of the half smaller side
+    v = (H - 2.0 * (np.arange(H) + 0.5)) / s  # image up
+    z = camera.distance - depth.astype(np.float64)
+    if camera.kind == "orthographic":
+        x = np.broadcast_to(u[None, :] * camera.extent, (H, W))
+        y = np.broadcast_to(v[:, None] * camera.extent, (H, W))
+    else:
+        t = np.tan(np.radians(camera.fov_deg) / 2.0)
+        x = u[None, :] * t * depth
+        y = v[:, None] * t * depth
+    p = np.stack([x, y, z], axis=-1)
+    return np.where(mask[..., None], p, 0.0).astype(np.float32)

@@ -75,14 +75,20 @@ def channel_names(emitter_id: str) -> list[str]:
     return [f"{emitter_id}.{c}" for c in _CHANNELS]
 
 
-def integrator_dict(kind: str, max_depth: int, emitter_ids: Sequence[str], hide_emitters: bool = True) -> dict:
+def integrator_dict(kind: str, max_depth: int, emitter_ids: Sequence[str], hide_emitters: bool = True,
+                    anisotropy: Sequence[float] = ()) -> dict:
     """`mi.load_dict` description of the one-pass integrator (registers it for the current variant).
 
     `kind` "direct" is one bounce (Mitsuba `direct` with one emitter and one BSDF sample).
+    `anisotropy`: per emitter, the LED exponent mu of a point light (radiant intensity x cos^mu of the
+    angle off its axis, the axis toward the scene origin); empty or 0: isotropic, as Mitsuba's `point`.
     """
     register()
-    return {"type": PLUGIN_NAME, "max_depth": 2 if kind == "direct" else int(max_depth),
-            "rr_depth": RR_DEPTH, "hide_emitters": bool(hide_emitters), "emitters": ",".join(emitter_ids)}
+    d = {"type": PLUGIN_NAME, "max_depth": 2 if kind == "direct" else int(max_depth),
+         "rr_depth": RR_DEPTH, "hide_emitters": bool(hide_emitters), "emitters": ",".join(emitter_ids)}
+    if any(anisotropy):
+        d["anisotropy"] = ",".join(f"{float(m):.9g}" for m in anisotropy)
+    return d
 
 
 def band_table(grid: np.ndarray, bands: np.ndarray) -> dict[str, np.ndarray]:
@@ -182,6 +188,10 @@ def _plugin_class(variant: str):
             self.emitter_ids = [s for s in str(props.get("emitters", "")).split(",") if s]
             if not self.emitter_ids:
                 raise ValueError(f"{PLUGIN_NAME}: property 'emitters' (comma-separated emitter ids) is required")
+            mus = [float(m) for m in str(props.get("anisotropy", "")).split(",") if m]
+            if mus and len(mus) != len(self.emitter_ids):
+                raise ValueError(f"{PLUGIN_NAME}: {len(mus)} anisotropy exponents for {len(self.emitter_ids)} emitters")
+            self.anisotropy = mus or [0.0] * len(self.emitter_ids)
             if self.max_depth < 0:
                 self.max_depth = 2 ** 31 - 1
             self.tables: dict[str, dict] = {}
@@ -309,6 +319,11 @@ def _plugin_class(variant: str):
                     shadow = si.spawn_ray(ds.d) if infinite[e] else si.spawn_ray_to(ds.p)
                     ok &= ~scene.ray_test(shadow, ok)
                     wo = si.to_local(ds.d)
+                    if self.anisotropy[e] and delta[e] and not infinite[e]:
+                        # an LED: intensity x cos^mu of the angle between its axis (toward the origin) and
+                        # the direction to this point, cos = ds.d . p/|p| (ds.d points from here to the LED)
+                        cos_axis = dr.dot(ds.d, dr.normalize(mi.Vector3f(ds.p)))
+                        em_w = em_w * dr.power(dr.maximum(cos_axis, 0.0), self.anisotropy[e])
                     if delta[e]:
                         val = bsdf.eval(ctx, s, wo, ok)
                         mis = mi.Float(1.0)

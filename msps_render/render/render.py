@@ -17,12 +17,13 @@ import numpy as np
 
 from msps_render.frame import Frame
 from msps_render.render.emitters import render_emitters_one_pass, render_emitters_separately
-from msps_render.render.ground_truth import frame_truth, pooled_truth
+from msps_render.render.ground_truth import frame_truth, pixel_points, pooled_truth
 from msps_render.render.multilight import PART_ATTRIBUTE
 from msps_render.render.pool import ScenePool, poolable
 from msps_render.render.scene_dict import build_scene_dict, emitter_ids, one_pass
 from msps_render.render.spectral import render_spectral_frame
 from msps_render.render.variant import activate, resolve_variant
+from msps_render.rig import compose_shots
 from msps_render.scene.spec import SceneSpec
 from msps_render.timing import StageTimer, stage
 
@@ -81,8 +82,14 @@ def _frame(mi, spec: SceneSpec, variant: str, truth: tuple, images: list[np.ndar
     env_img = images.pop() if spec.environment is not None else None
     per = np.stack(images) if images else np.zeros((0,) + normal.shape, np.float32)
     image = per.sum(axis=0) + (env_img if env_img is not None else 0.0)
+    shots = points = None
+    if spec.rig is not None:  # the rig's camera images: sums of lights, linear maps of R, G, B
+        shots = compose_shots(spec.rig, per, env_img)
+        if any(l.kind == "point" for l in spec.lights):
+            points = pixel_points(spec.camera, depth, mask)
     if not per_light:
         per = None
     return Frame(image=np.ascontiguousarray(image[..., :3], dtype=np.float32), normal=normal, mask=mask,
                  depth=depth, part=part, spec=spec, variant=variant, per_light=per, env_image=env_img,
-                 albedo=albedo, blend=blend, meta={"mitsuba_version": mi.__version__, "lights": "one-pass" if one_pass(spec, mi) else "per-light"})
+                 albedo=albedo, blend=blend, meta={"mitsuba_version": mi.__version__, "lights": "one-pass" if one_pass(spec, mi) else "per-light"},
+                 shots=shots, points=points)

@@ -22,6 +22,7 @@ from msps_render.render.multilight import integrator_dict
 from msps_render.render.textures import subdivide_to_edge, vertex_attributes
 from msps_render.scene.envmap import envmap_pixels
 from msps_render.scene.shapes import build_mesh, face_parts
+from msps_render.errors import InputError
 from msps_render.scene.spec import CameraSpec, SceneSpec
 from msps_render.timing import StageTimer, stage
 
@@ -175,7 +176,12 @@ def build_scene_dict(spec: SceneSpec, mi, timer: StageTimer | None = None, env_f
 def _scene_dict(spec: SceneSpec, mi, timer: StageTimer | None, env_factor: float) -> dict:
     integ = spec.integrator
     if one_pass(spec, mi):
-        integrator = integrator_dict(integ.kind, integ.max_depth, emitter_ids(spec), hide_emitters=True)
+        mus = list(spec.rig.anisotropy) if spec.rig is not None and spec.rig.anisotropy else []
+        integrator = integrator_dict(integ.kind, integ.max_depth, emitter_ids(spec), hide_emitters=True,
+                                     anisotropy=mus + [0.0] * (len(emitter_ids(spec)) - len(mus)) if mus else ())
+    elif spec.rig is not None and any(spec.rig.anisotropy):
+        raise InputError("scene.rig.anisotropy_mu", f"anisotropic LEDs need the one-pass integrator in a JIT "
+                                                    f"variant (llvm_*/cuda_*); this render uses {mi.variant()}")
     elif integ.kind == "path":
         integrator = {"type": "path", "max_depth": integ.max_depth, "hide_emitters": True}
     else:

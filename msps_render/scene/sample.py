@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_serializer
 
 from msps_render.brdf.families import FAMILIES, GAMUTS, unknown_family
 from msps_render.config_io import StrictModel, read_toml, validate
@@ -20,6 +20,7 @@ from msps_render.errors import InputError
 from msps_render.scene.envmap import envmap_pixels, expand_path, irradiance_on_axis, missing_asset
 from msps_render.scene.families import expand_families, sample_family_params
 from msps_render.scene.geometry import sample_blobby_coeffs
+from msps_render.rig import RigConfig, sample_rig
 from msps_render.scene.lights import PAPER_CROSSTALK, random_crosstalk, three_lights
 from msps_render.scene.materials import sample_analytic, sample_materials
 from msps_render.scene.primitives import PRIMITIVES, sample_primitive_params, unknown_primitive
@@ -199,6 +200,17 @@ class SceneConfig(StrictModel):
     mode: Literal["rgb", "spectral"] = Field("rgb", description="rgb: crosstalk matrix given; spectral: "
                                                                  "light spectra x camera sensitivities")
     spectral: SpectralConfig | None = None
+    rig: RigConfig | None = Field(None, description="any photometric-stereo rig: N lights x M channels, one "
+                                                    "shot or one image per light, far or near (docs/rigs.md); "
+                                                    "absent: the three-light [scene.lights] rig")
+
+    @model_serializer(mode="wrap")
+    def _without_absent_rig(self, handler):
+        """Configs without a rig serialise (and hash) as before the rig existed: same shards, same bytes."""
+        d = handler(self)
+        if self.rig is None and isinstance(d, dict):
+            d.pop("rig", None)
+        return d
 
 
 def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator, frame_index: int | None = None) -> ShapeSpec:
@@ -262,6 +274,8 @@ def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = 
         n = int(rng.integers(cfg.materials.min_count, max(cfg.materials.min_count, cfg.materials.max_count) + 1))
     materials = _sample_materials(cfg.materials, n, rng)
     split = sample_split(rng, n, cfg.materials.split)
+    if cfg.rig is not None:
+        return _sample_rig_scene(cfg, rng, seed, shape, materials, split)
     lc = cfg.lights
     crosstalk, spectra, camera_response = lc.crosstalk, None, None
     if lc.crosstalk_random is not None and cfg.mode == "rgb":  # a random rig per frame
@@ -301,6 +315,25 @@ def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = 
                      camera=cfg.camera, integrator=integ, mode=cfg.mode, camera_response=camera_response,
                      crosstalk=tuple(tuple(float(x) for x in row) for row in np.asarray(crosstalk)),
                      seed=seed)
+
+
+def _sample_rig_scene(cfg: SceneConfig, rng: np.random.Generator, seed, shape, materials, split) -> SceneSpec:
+    """The rest of `sample_scene` for a `[scene.rig]` (same draw order: lights, env, integrator, textures)."""
+    if cfg.mode != "rgb":
+        raise InputError("scene.rig", "rigs render in mode 'rgb' (camera channels are linear maps of R, G, B); "
+                                      "spectral rigs are not supported yet")
+    lights, rig = sample_rig(cfg.rig, rng)
+    env = None
+    ec = cfg.environment
+    if ec.enabled and ec.ratio_range is not None:
+        ec = ec.model_copy(update={"ratio": float(rng.uniform(*ec.ratio_range))})
+    if ec.enabled and ec.ratio > 0:  # the ratio is to one image's lights (the mean shot)
+        env = environment_for_ratio(ec, lights_plane_irradiance(lights) / len(rig.shots), rng)
+    integ = cfg.integrator.model_copy(update={"seed": int(rng.integers(2**31 - 1))})
+    if cfg.materials.texture.fraction > 0:
+        materials = texture_materials(cfg.materials, shape, materials, rng)
+    return SceneSpec(shape=shape, split=split, materials=materials, lights=lights, environment=env,
+                     camera=cfg.camera, integrator=integ, mode=cfg.mode, seed=seed, rig=rig)
 
 
 def lights_plane_irradiance(lights) -> float:

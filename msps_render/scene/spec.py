@@ -16,12 +16,13 @@ import math
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_serializer, model_validator
 
 from msps_render.brdf.families import MATERIAL_KINDS
 from msps_render.scene.textures import TextureSpec
 from msps_render.config_io import FrozenModel
 from msps_render.errors import InputError, format_validation_error
+from msps_render.rig import RigSpec
 from msps_render.scene.families import SHAPE_FAMILIES, unknown_family_message
 from msps_render.scene.primitives import PRIMITIVES, unknown_primitive
 
@@ -210,6 +211,16 @@ class SceneSpec(FrozenModel):
     crosstalk: tuple[RGB, RGB, RGB] | None = None  # effective 3x3 M (rows: channels, cols: lights)
     camera_response: str | None = None  # spectral mode: camera sensitivity id
     seed: int | None = None  # the seed the scene was sampled from (provenance)
+    # Any rig (msps_render.rig): channels, shots, nominal lights.  None: the three-light rig of the
+    # seed paper, and then left out of the JSON so stored three-light scenes keep their bytes.
+    rig: RigSpec | None = None
+
+    @model_serializer(mode="wrap")
+    def _without_absent_rig(self, handler):
+        d = handler(self)
+        if self.rig is None and isinstance(d, dict):
+            d.pop("rig", None)
+        return d
 
     @model_validator(mode="before")
     @classmethod
@@ -230,6 +241,8 @@ class SceneSpec(FrozenModel):
             )
         if not self.lights and self.environment is None:
             raise ValueError("a scene needs at least one light or an environment")
+        if self.rig is not None and len(self.rig.nominal_dirs) != len(self.lights):
+            raise ValueError(f"rig has {len(self.rig.nominal_dirs)} nominal lights for {len(self.lights)} lights")
         if self.shape.kind == "sphere" and self.split.kind != "none":
             raise ValueError("the analytic sphere cannot be split into parts; use kind 'blobby'")
         return self
