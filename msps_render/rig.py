@@ -245,6 +245,11 @@ def pixel_light_factors(rig: Rig, points: np.ndarray) -> np.ndarray:
     return out
 
 
+def pixel_factors_dirs(rig: Rig, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(`pixel_light_dirs`, `pixel_light_factors`) of the same points."""
+    return pixel_light_dirs(rig, points), pixel_light_factors(rig, points)
+
+
 def lambertian_shots(rig: Rig, normal: np.ndarray, albedo, points: np.ndarray | None = None) -> np.ndarray:
     """The closed-form image (S, ..., M) of a Lambertian surface (albedo per channel or grey) under
     this rig, direct light only (no shadows cast by other parts): the physics tests' reference."""

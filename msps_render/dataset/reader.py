@@ -13,7 +13,7 @@ import numpy as np
 
 from msps_render.dataset import schema as K
 from msps_render.dataset.digest import array_digest
-from msps_render.dataset.schema import Patches, WholeFrame
+from msps_render.dataset.schema import Patches, RigFrame, WholeFrame
 from msps_render.errors import InputError, brief
 
 
@@ -202,6 +202,67 @@ def iter_whole_frames(path: str | Path, per_light: bool = False) -> Iterator[Who
                              h[K.FRAME_PER_LIGHT][i].astype(np.float32) if lights else None,
                              h[K.FRAME_ENV_IMAGE][i].astype(np.float32) if env else None,
                              float(env_ratio[i]))
+
+
+def is_rig_shard(h) -> bool:
+    """Format 2 (any rig)."""
+    return format_version(h) == K.RIG_FORMAT_VERSION
+
+
+def read_rigs(h) -> tuple[list, list]:
+    """(true rigs, nominal rigs) per frame of an open format-2 shard (`msps_render.rig.Rig`)."""
+    import json
+
+    from msps_render.rig import Rig
+
+    dirs, C, pos = h[K.FRAME_LIGHT_DIRS][()], h[K.FRAME_CROSSTALK][()], h[K.FRAME_LIGHT_POS][()]
+    ndirs, nC = h[K.FRAME_NOMINAL_DIRS][()], h[K.FRAME_NOMINAL_CROSSTALK][()]
+    true, nominal = [], []
+    for i, rj in enumerate(h[K.FRAME_RIG_JSON].asstr()[()]):
+        r = json.loads(rj)
+        shots = tuple(tuple(s) for s in r["shots"])
+        mu = np.asarray(r["anisotropy"], np.float64) if r.get("anisotropy") else None
+        p = pos[i].astype(np.float64)
+        p = p if np.isfinite(p).any() else None
+        true.append(Rig(dirs[i].astype(np.float64), C[i].astype(np.float64), shots=shots, positions=p, anisotropy=mu))
+        np_ = None if p is None else np.where(np.isfinite(p), ndirs[i] * np.linalg.norm(np.nan_to_num(p), axis=1)[:, None], np.nan)
+        nominal.append(Rig(ndirs[i].astype(np.float64), nC[i].astype(np.float64), shots=shots, positions=np_,
+                           anisotropy=mu))
+    return true, nominal
+
+
+def iter_rig_frames(path: str | Path) -> Iterator[RigFrame]:
+    """The whole frames of a format-2 shard written with `store_frames = true`."""
+    path = Path(path)
+    with shard_errors(path), open_shard(path) as h:
+        if not is_rig_shard(h):
+            raise InputError(path, "a three-light shard (format 1): read it with iter_whole_frames")
+        if K.FRAME_SHOTS not in h:
+            raise InputError(path, "shard has no whole frames (render the preset with store_frames = true)")
+        true, nominal = read_rigs(h)
+        objs = h[K.FRAME_OBJECT].asstr()[()]
+        mats = h[K.FRAME_MATERIALS].asstr()[()]
+        conds = h[K.FRAME_CONDITION].asstr()[()]
+        rjs = h[K.FRAME_RIG_JSON].asstr()[()]
+        rgb = h[K.FRAME_LIGHT_RGB][()]
+        pts = K.FRAME_POINTS in h
+        for i in range(len(h[K.FRAME_SHOTS])):
+            yield RigFrame(h[K.FRAME_SHOTS][i].astype(np.float32), h[K.FRAME_NORMAL][i],
+                           h[K.FRAME_MASK][i].astype(bool), true[i], nominal[i], str(objs[i]), str(mats[i]),
+                           str(conds[i]), path.name, i, h[K.FRAME_POINTS][i] if pts else None,
+                           rgb[i].astype(np.float64), str(rjs[i]))
+
+
+def read_rig_patches(h) -> dict[str, np.ndarray]:
+    """{'image' (N, S, P, P, M), 'normal', 'mask', 'frame_index', 'points' (near lights, else absent)} of an
+    open format-2 shard, decoded."""
+    if not is_rig_shard(h):
+        raise InputError(h.filename, "a three-light shard (format 1): read it with read_patches")
+    out = {name: h[key][()] for name, key in K.PATCH_ARRAYS.items()}
+    out["frame_index"] = h[K.PATCH_FRAME_INDEX][()]
+    if K.PATCH_POINTS in h:
+        out["points"] = h[K.PATCH_POINTS][()]
+    return out
 
 
 def read_digests(path: str | Path) -> dict[str, str]:

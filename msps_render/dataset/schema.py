@@ -162,3 +162,25 @@ class WholeFrame:
     per_light: np.ndarray | None = None  # (K, H, W, 3) light k alone (shards with store_per_light)
     env_image: np.ndarray | None = None  # (H, W, 3) environment alone (None: none, or not stored)
     env_ratio: float = 0.0
+
+
+@dataclass
+class RigFrame:
+    """A whole stored frame of a rig shard (format 2): its camera images and both rigs.
+
+    `rig` is what was rendered (truth), `nominal` what a calibration would say (equal unless the
+    preset adds calibration errors); both are `msps_render.rig.Rig` values."""
+
+    shots: np.ndarray  # (S, H, W, M) float32 linear radiance, one image per shot
+    normal: np.ndarray  # (H, W, 3)
+    mask: np.ndarray  # (H, W) bool
+    rig: object  # msps_render.rig.Rig (truth)
+    nominal: object  # msps_render.rig.Rig (calibration)
+    object: str
+    materials: str
+    condition: str
+    shard: str
+    index: int
+    points: np.ndarray | None = None  # (H, W, 3) surface points (near lights)
+    light_rgb: np.ndarray | None = None  # (N, 3) each light's RGB (irradiance; point lights: intensity)
+    rig_json: str = ""
