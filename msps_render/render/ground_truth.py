@@ -196,11 +196,11 @@ def pixel_points(camera, depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
     Why: near lights light each pixel from its own direction, l(x) = (p - x)/|p - x|; the point x is
     exact from the pixel-centre ray (the same one the depth came from).  Orthographic: x, y are the
-    pixel centre on the view plane (half-extent `extent` on the smaller side, Mitsuba's orthographic
+    pixel centre on the view plane (the width spans +-`extent`, pixels square: Mitsuba's orthographic
     film); perspective: along the pixel-centre ray (field of view on the smaller side)."""
     H, W = depth.shape
-    s = min(H, W)
-    u = (2.0 * (np.arange(W) + 0.5) - W) / s  # image right, in units of the half smaller side
+    s = W if camera.kind == "orthographic" else min(H, W)  # orthographic: the width spans +-extent
+    u = (2.0 * (np.arange(W) + 0.5) - W) / s  # image right, in units of half that side
     v = (H - 2.0 * (np.arange(H) + 0.5)) / s  # image up
     z = camera.distance - depth.astype(np.float64)
     if camera.kind == "orthographic":
