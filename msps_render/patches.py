@@ -44,10 +44,12 @@ def patchify(frame: Frame, size: int = 40, stride: int = 20, min_coverage: float
     iy = keep[:, 0, None] + np.arange(size)[None, :]
     ix = keep[:, 1, None] + np.arange(size)[None, :]
     sel = (iy[:, :, None], ix[:, None, :])
-    if frame.shots is not None:  # any rig: (n, S, P, P, M), every image of the patch
-        image = np.moveaxis(frame.shots[(slice(None),) + sel], 0, 1).astype(np.float32)
+    shots = getattr(frame, "shots", None)  # mask-only stand-ins (plan estimates) carry no shots
+    if shots is not None:  # any rig: (n, S, P, P, M), every image of the patch
+        image = np.moveaxis(shots[(slice(None),) + sel], 0, 1).astype(np.float32)
     else:
         image = frame.image[sel].astype(np.float32)
-    points = frame.points[sel].astype(np.float32) if frame.points is not None else None
+    points = getattr(frame, "points", None)
+    points = points[sel].astype(np.float32) if points is not None else None
     return Patches(image=image, normal=frame.normal[sel].astype(np.float32),
                    mask=frame.mask[sel].astype(np.uint8), yx=keep.astype(np.int32), points=points)

@@ -376,6 +376,18 @@ class RigConfig(StrictModel):
             return len(read_light_file(self._file_path())[0]) if self.file else 0
         return self.n_lights
 
+    def image_shape(self) -> tuple[int, int, int, bool]:
+        """(lights, images per patch, channels, near lights?) of this rig: what storage depends on."""
+        n = self.count()
+        return n, len(self.shot_list(n)), len(channel_matrix(self.channels)), (
+            self.layout == "grid" or self.kind == "point")
+
+    def describe(self) -> str:
+        n, s, m, near = self.image_shape()
+        cap = "multiplexed (one image)" if self.capture == "multiplexed" else (
+            "sequential (one image per light)" if self.capture == "sequential" else f"{s} shots")
+        return f"{self.layout}: {n} {'near point' if near else 'directional'} lights x {m} channel(s), {cap}"
+
     def shot_list(self, n: int) -> tuple[tuple[int, ...], ...]:
         if self.capture == "multiplexed":
             return (tuple(range(n)),)

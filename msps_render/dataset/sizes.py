@@ -32,7 +32,10 @@ def storage_bytes(path: str | Path) -> dict[str, int]:
             "other": max(0, size - out[K.PATCHES] - out[K.FRAMES]), "file": size}
 
 
-def raw_patch_bytes(size: int, image_dtype: str, normal_dtype: str) -> int:
-    """Uncompressed bytes of one patch row: image + normal + mask + frame index + yx."""
+def raw_patch_bytes(size: int, image_dtype: str, normal_dtype: str, shots: int = 1, channels: int = 3,
+                    points: bool = False) -> int:
+    """Uncompressed bytes of one patch row: image (shots x channels) + normal + mask (+ surface points
+    of near-light rigs) + frame index + yx."""
     item = {"float16": 2, "float32": 4}
-    return size * size * (3 * item[image_dtype] + 3 * item[normal_dtype] + 1) + 4 + 2 * 4
+    return size * size * (shots * channels * item[image_dtype] + 3 * item[normal_dtype] + 1
+                          + (12 if points else 0)) + 4 + 2 * 4

@@ -1,7 +1,9 @@
 """`msps export`: a dataset's whole frames in the layouts other photometric-stereo code reads.
 
 One module per format, each registering an `ExportFormat` in `FORMATS`
-(`formats.py`; add a format: one module, and its name in the import below).  `export_dataset` validates everything
+(`formats.py`; add a format: one module, and its name in the import below).  A rig dataset
+(format-2 shards, `[scene.rig]`) goes through `anyrig.export_rig_dataset` and the formats'
+`write_rig_frame` (diligent and psfcn: one image per light of a sequential capture).  `export_dataset` validates everything
 first, writes into a hidden temporary directory beside `--out` and renames it
 into place at the end, so a failure or an interrupt leaves nothing behind.
 Layouts and conventions: docs/recipes.md "Export".
@@ -14,6 +16,7 @@ from typing import Callable
 from msps_render.dataset.manifest import SHARD_DIR, read_manifest
 from msps_render.errors import InputError
 from msps_render.export import diligent, images, psfcn  # noqa: F401  (each registers its format)
+from msps_render.export.anyrig import export_rig_dataset, is_rig_dataset
 from msps_render.export.formats import FORMATS, ExportFormat, get_format, register  # noqa: F401
 from msps_render.export.source import (PER_LIGHT_CONTENTS, PER_LIGHT_SOURCES, ExportFrame, check_has_frames,
                                        dataset_variant, iter_export_frames, sensor_model, stored_per_light,
@@ -30,6 +33,8 @@ def export_dataset(root: str | Path, fmt: str, out: str | Path, rerender: bool =
     root, out = Path(root), Path(out)
     f = get_format(fmt)
     check_has_frames(root)  # also: not a dataset, incomplete, unreadable shard
+    if is_rig_dataset(root):
+        return export_rig_dataset(root, f, out, rerender=rerender, progress=progress)
     missing = stored_per_light(root)
     if f.per_light and missing is not None and not rerender:
         raise InputError(missing, f"shard stores no per-light images, which the {f.name} layout needs; add "

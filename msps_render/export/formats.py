@@ -17,6 +17,9 @@ class ExportFormat:
     finish: Callable[[Path, list[dict]], None] | None = None  # index files, after every frame
     per_light: bool = False  # needs one image per light (stored with store_per_light, else --rerender)
     light_files: str = ""  # where the per-light and environment images go (export.json says)
+    # a rig dataset's frame (format-2 shards, `anyrig.RigExportFrame`); None: the format takes three-light data only
+    write_rig_frame: Callable[[object, Path], dict] | None = None
+    rig_light_files: str = ""  # where a rig dataset's per-light images go (export.json says)
 
 
 FORMATS: dict[str, ExportFormat] = {}

@@ -14,6 +14,18 @@
 Image k is per_light[k] / light_rgb[k] (per channel) times one exposure per
 frame (`png_scale`, brightest -> 255); light_intensities.txt holds png_scale in
 every channel, so image / intensity is again the image under a unit white light.
+
+Any rig (format-2 shards, `[scene.rig]`; `write_rig_frame`): N lights of a sequential capture (one
+image per light; shots of several lights are refused, `export.anyrig`), the same layout with
+
+    l_000.png ... l_<N-1>.png                   8-bit, image k = the camera's shot of light k divided
+                                                per channel by its reading C[:, k] (the nominal rig's
+                                                channel-by-light matrix), times png_scale; a mono
+                                                camera's grey value in all three channels (PS-FCN reads
+                                                three channels per image)
+    <shape>_<mtrl>.txt                          "l_000.png x y z" per light: the NOMINAL directions
+    light_directions_true.txt, light_intensities.txt (png_scale, N rows), and for near (point) lights
+    light_positions.txt / _true.txt and points.npy, as the diligent layout writes them.
 """
 from __future__ import annotations
 
@@ -55,6 +67,36 @@ def write_frame(ef: ExportFrame, root: Path) -> dict:
     return {"dir": f"Images/{shape}/{mtrl}", "png_scale": s, **write_environment(ef, md, np.uint8)}
 
 
+def image_names(n: int) -> list[str]:
+    return [f"l_{k:03d}.png" for k in range(n)]
+
+
+def write_rig_frame(ef, root: Path) -> dict:
+    """One frame of a rig dataset (`export.anyrig.RigExportFrame`, one image per light): see the docstring."""
+    from msps_render.export.diligent import write_rig_lights
+
+    shape, mtrl = ef.id, safe_name(ef.materials.replace(";", "+"))
+    sd = root / "Images" / shape
+    md = sd / mtrl
+    md.mkdir(parents=True)
+    wb = white_balanced(ef.images, np.asarray(ef.nominal.crosstalk, np.float64).T)  # (N, H, W, M)
+    if wb.shape[-1] == 1:
+        wb = np.repeat(wb, 3, axis=-1)
+    top = float(wb.max()) if wb.size else 0.0
+    s = 1.0 / top if top > 0 else 1.0
+    names = image_names(ef.n_lights)
+    for name, img in zip(names, wb):
+        write_png(md / name, to_unorm(img * s, np.uint8))
+    L = np.asarray(ef.nominal.light_dirs, np.float64)
+    (md / f"{shape}_{mtrl}.txt").write_text("".join(f"{n} " + " ".join(f"{v:.9g}" for v in l) + "\n"
+                                                    for n, l in zip(names, L)))
+    write_rig_lights(ef, md, s, intensities=False)
+    (md / "light_intensities.txt").write_text(fmt_rows(np.full((len(names), 3), s)))
+    write_png(sd / f"{shape}_normal.png", encode_normal(ef.normal, ef.mask, np.uint8))
+    write_png(sd / "mask.png", (ef.mask * 255).astype(np.uint8))
+    return {"dir": f"Images/{shape}/{mtrl}", "png_scale": s, "images": names}
+
+
 def finish(root: Path, infos: list[dict]) -> None:
     (root / "train_mtrl.txt").write_text("".join(i["dir"].split("/", 1)[1] + "\n" for i in infos))
 
@@ -63,4 +105,7 @@ register(ExportFormat("psfcn", "PS-FCN synthetic layout: Images/<shape>/<mtrl>/l
                                "<shape>_normal.png, train_mtrl.txt", write_frame, finish, per_light=True,
                       light_files="Images/<id>/<mtrl>/l_000.png ... l_002.png (light k / its RGB, on png_scale), "
                                   "Images/<id>/<mtrl>/environment.png (frames with an environment light, on "
-                                  "env_png_scale; not in the light list)"))
+                                  "env_png_scale; not in the light list)",
+                      write_rig_frame=write_rig_frame,
+                      rig_light_files="Images/<id>/<mtrl>/l_000.png ... (the shot of light k / its nominal "
+                                      "reading, on png_scale; 8-bit RGB, a mono camera's grey in all three)"))

@@ -91,6 +91,7 @@ class Description:
     patch_size: int
     patch_stride: int
     min_coverage: float
+    rig: str | None
     storage: dict
     estimate: Estimate | None = None
     notes: list[str] = field(default_factory=list)
@@ -115,7 +116,7 @@ def describe(cfg: DatasetConfig, probe: int = 0, variant: str | None = None,
         frames_per_shard=d.frames_per_shard, n_frames=len(tasks) * d.frames_per_shard, conditions=conds,
         sweep_key=cfg.sweep.key if cfg.sweep else None, resolution=(cam.width, cam.height),
         spp=cfg.scene.integrator.spp, patch_size=d.patches.size, patch_stride=d.patches.stride,
-        min_coverage=d.patches.min_coverage, storage=d.storage.model_dump())
+        min_coverage=d.patches.min_coverage, storage=d.storage.model_dump(), rig=_rig_line(cfg))
     if probe > 0:
         desc.estimate = _probe(cfg, tasks, probe, variant, threads, masks)
     return desc
@@ -168,7 +169,9 @@ def _probe(cfg: DatasetConfig, tasks: list[Task], n: int, variant: str | None,
     picks = probe_frames(tasks, C, F, n)
     by_name = {t.name: t for t in tasks}
     render_s, raw, stored_patches, stored_frames, other, frames_done = 0.0, 0, 0, 0, 0, 0
-    raw1 = raw_patch_bytes(d.patches.size, d.storage.image_dtype, d.storage.normal_dtype)
+    rig = cfg.scene.rig
+    _, shots, channels, near = rig.image_shape() if rig is not None else (3, 1, 3, False)
+    raw1 = raw_patch_bytes(d.patches.size, d.storage.image_dtype, d.storage.normal_dtype, shots, channels, near)
     probe_from = []
     tmp = Path(tempfile.mkdtemp(prefix="msps-probe-"))
     ws = WorkerSettings(out_dir=str(tmp), variant=variant, threads=threads)
@@ -272,6 +275,23 @@ def _duration(s: float) -> str:
     return f"{s / 3600:.1f} h"
 
 
+def _rig_line(cfg: DatasetConfig) -> str | None:
+    """What the rig costs per patch, against a three-light patch of the same size and dtypes."""
+    rig = cfg.scene.rig
+    if rig is None:
+        return None
+    _, shots, channels, near = rig.image_shape()
+    d = cfg.dataset
+    one = raw_patch_bytes(d.patches.size, d.storage.image_dtype, d.storage.normal_dtype)
+    mine = raw_patch_bytes(d.patches.size, d.storage.image_dtype, d.storage.normal_dtype, shots, channels, near)
+    line = (f"rig {rig.describe()}: {shots} image(s) of {d.patches.size}x{d.patches.size}x{channels} per patch, "
+            f"{mine / one:.1f}x the raw bytes of a three-light patch")
+    if shots > 16:
+        line += ("; keep image_dtype float16, and train on a light subset per sample (the loader's "
+                 "`lights_per_sample`, as PS-FCN trains on 32 of its images)")
+    return line
+
+
 def plan_text(desc: Description) -> str:
     """The plan and the estimates as TOML comments (so `config show` output stays valid TOML)."""
     e = desc.estimate
@@ -290,6 +310,8 @@ def plan_text(desc: Description) -> str:
              f"image {st['image_dtype']}, normal {st['normal_dtype']}"
              + (", whole frames stored" if st["store_frames"] else "")
              + (" with per-light images" if st.get("store_per_light") else ""))
+    if desc.rig:
+        L.append(f"# {desc.rig}")
     if e is None:
         L.append("# estimates: none (nothing rendered); `--probe N` renders N frames of the plan into a temp "
                  "dir to estimate patches, render time and disk")
