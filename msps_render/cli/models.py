@@ -101,9 +101,17 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
     error_hist.png, per_object.csv/.png (frames stored), robustness.png (sweeps)."""
     from msps_render.models.evaluate import evaluate, resolve_methods
     from msps_render.models.report import summary_lines
+    from msps_render.models.rig_eval import is_rig_dataset
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out, "report")
+    if is_rig_dataset(data):  # any rig (format-2 shards): methods that read the rig itself
+        from msps_render.models import rig_eval
+
+        r = rig_eval.evaluate_rig(data, out, rig_eval.resolve_rig_methods(method, checkpoint), progress=not quiet)
+        typer.echo("\n".join(rig_eval.summary_lines(r)))
+        typer.echo("wrote " + ", ".join(r["files"]))
+        return
     columns = _steps(steps, True, DEFAULT_RENDERED, selfcal=selfcal, segments=segments, netcal=netcal,
                      mirror=mirror, refine=refine)
     r = evaluate(data, out, resolve_methods(checkpoint, method, columns), max_patches=max_patches,
