@@ -343,10 +343,11 @@ def _ps_fcn_item(root: Path, entry: str) -> dict:
 
 
 def _lambertian_ps(img: np.ndarray, lights: np.ndarray) -> np.ndarray:
-    """Calibrated Lambertian PS on K RGB images (H, W, 3K) under unit white lights: grey I = L g."""
+    """Calibrated Lambertian PS on K RGB images (H, W, 3K) under unit white lights: grey I = L g, least
+    squares (K = 3: L's inverse; any K >= 3: tests/test_rig_export.py)."""
     H, W, _ = img.shape
     grey = img.reshape(H, W, len(lights), 3).mean(-1)
-    g = np.einsum("ij,hwj->hwi", np.linalg.inv(lights.astype(np.float64)), grey)
+    g = np.einsum("ij,hwj->hwi", np.linalg.pinv(lights.astype(np.float64)), grey)
     return g / (np.linalg.norm(g, axis=-1, keepdims=True) + 1e-12)
 
 

@@ -3,7 +3,8 @@
 One module per format, each registering an `ExportFormat` in `FORMATS`
 (`formats.py`; add a format: one module, and its name in the import below).  A rig dataset
 (format-2 shards, `[scene.rig]`) goes through `anyrig.export_rig_dataset` and the formats'
-`write_rig_frame` (diligent and psfcn: one image per light of a sequential capture).  `export_dataset` validates everything
+`write_rig_frame` (diligent and psfcn: one image per light of a sequential capture).
+`export_dataset` validates everything
 first, writes into a hidden temporary directory beside `--out` and renames it
 into place at the end, so a failure or an interrupt leaves nothing behind.
 Layouts and conventions: docs/recipes.md "Export".

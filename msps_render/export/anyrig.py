@@ -186,7 +186,8 @@ RIG_CONVENTIONS = {
                          "value in all three columns",
     "near_lights": "point lights: light_positions.txt (nominal) and light_positions_true.txt, x y z per light in "
                    "scene units; points.npy (H, W, 3) float32 surface point of each pixel centre (0 off the "
-                   "object)",
+                   "object); light_anisotropy.txt (LEDs with anisotropy_mu): mu per light, radiant intensity "
+                   "cos^mu of the angle off the LED's axis, which points at the object centre",
 }
 
 

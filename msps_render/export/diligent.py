@@ -33,6 +33,9 @@ Any rig (format-2 shards, `[scene.rig]`; `write_rig_frame`): N lights of a seque
                                              pixel centre, camera frame (0 off the object), so that
                                              near-field methods get each pixel's own light vectors
                                              and fall-off: l_k(x) = (p_k - x) / |p_k - x|
+    light_anisotropy.txt                     near LEDs with scene.rig.anisotropy_mu: mu per light, the
+                                             LED's radiant intensity cos^mu of the angle off its axis
+                                             (the axis points at the object centre)
 
 and mask.png, Normal_gt.png/.mat, normal.txt as above.  The images are the stored shots times one
 exposure per frame, the intensities the channel-by-light readings times the same exposure, so
@@ -119,6 +122,8 @@ def write_rig_lights(ef, d: Path, s: float, intensities: bool = True) -> None:
         (d / "light_positions.txt").write_text(fmt_rows(light_positions(ef.nominal)))
         (d / "light_positions_true.txt").write_text(fmt_rows(light_positions(ef.rig)))
         np.save(d / "points.npy", np.asarray(ef.points, np.float32))
+        if ef.rig.anisotropy is not None:  # LED radiant intensity cos^mu about its axis (toward the object centre)
+            (d / "light_anisotropy.txt").write_text("".join(f"{float(mu):.9g}\n" for mu in ef.rig.anisotropy))
 
 
 def write_environment(ef: ExportFrame, d: Path, dtype) -> dict:

@@ -25,7 +25,8 @@ image per light; shots of several lights are refused, `export.anyrig`), the same
                                                 three channels per image)
     <shape>_<mtrl>.txt                          "l_000.png x y z" per light: the NOMINAL directions
     light_directions_true.txt, light_intensities.txt (png_scale, N rows), and for near (point) lights
-    light_positions.txt / _true.txt and points.npy, as the diligent layout writes them.
+    light_positions.txt / _true.txt, points.npy (and light_anisotropy.txt), as the diligent layout
+    writes them.
 """
 from __future__ import annotations
 
