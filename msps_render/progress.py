@@ -52,3 +52,66 @@ class Bar:
         if self._p is None:
             return None
         return Task(self._p, self._p.add_task(description, total=total))
+
+
+LINE_EVERY_S = 15.0  # a plain progress line at least this often when output goes to a file
+
+
+def _duration(s: float) -> str:
+    s = max(0, int(round(s)))
+    return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
+
+
+class LineTicker:
+    """Progress of one long loop: a tqdm bar on a terminal; plain lines (`name: done/total unit, rate, ETA,
+    note`) every `every_s` seconds on stderr when it is a file (nohup, Slurm, CI logs), so a log shows
+    the run moving, not only its end."""
+
+    def __init__(self, name: str, total: int | None, enabled: bool = True, unit: str = "it", start: int = 0,
+                 every_s: float = LINE_EVERY_S, stream=None):
+        import sys
+        import time
+
+        self.name, self.total, self.unit, self.every_s = name, total, unit, every_s
+        self.enabled, self._time = enabled, time.perf_counter
+        self.stream = stream or sys.stderr
+        self.n = self.n0 = start
+        self.t0 = self._last = self._time()
+        self._note = ""
+        self._bar = None
+        if enabled and self.stream.isatty():
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, initial=start, unit=unit, dynamic_ncols=True, file=self.stream)
+
+    def line(self) -> str:
+        dt = self._time() - self.t0
+        rate = (self.n - self.n0) / dt if dt > 0 else 0.0
+        of = f"/{self.total}" if self.total else ""
+        eta = f", ETA {_duration((self.total - self.n) / rate)}" if self.total and rate > 0 else ""
+        return (f"{self.name}: {self.n}{of} {self.unit}s, {rate:.2f} {self.unit}/s, elapsed {_duration(dt)}{eta}"
+                + (f"; {self._note}" if self._note else ""))
+
+    def update(self, n: int) -> None:
+        if not self.enabled:
+            return
+        if self._bar is not None:
+            self._bar.update(n - self.n)
+            self.n = n
+            return
+        self.n = n
+        if self._time() - self._last >= self.every_s:
+            self._last = self._time()
+            print(self.line(), file=self.stream, flush=True)
+
+    def note(self, text: str) -> None:
+        self._note = text
+        if self._bar is not None:
+            self._bar.set_postfix_str(text)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+        elif self.enabled:
+            print(self.line(), file=self.stream, flush=True)
+        self.enabled = False

@@ -64,9 +64,26 @@ def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAM
               smoke: bool = typer.Option(False, "--smoke", help="a short check that the whole loop works on "
                                          "your data: a few minutes on 2 cores (docs/reproducing.md)"),
               json_out: bool = typer.Option(False, "--json", help="print the end summary as JSON")):
-    """Train the dual-cue network (or an ablation: --set net.mode=scn|pcn)."""
+    """Train the dual-cue network (or an ablation: --set net.mode=scn|pcn), or the classic any-light
+    network (presets with kind = "classic": classic-cpu, classic-gpu) on rig datasets."""
     import torch
 
+    from msps_render.models import classic
+
+    if classic.preset_kind(config) == classic.KIND:
+        from msps_render.errors import InputError
+        from msps_render.pipeline.outdir import check_writable
+
+        check_writable(out, "run")
+        if threads:
+            torch.set_num_threads(threads)
+        if init is not None:
+            raise InputError("--init", "warm starts are for the dual-cue network; the classic network resumes "
+                                       "its own run (--resume)")
+        ccfg = classic.load_classic_config(config, [*(classic.SMOKE if smoke else ()), *set_])
+        r = classic.train_classic(ccfg, data if len(data) > 1 else data[0], val, out, resume=resume, device=device)
+        typer.echo(json.dumps(r) if json_out else "\n".join(classic.summary_lines(r)))
+        return
     from msps_render.models.presets import SMOKE, load_model_config
     from msps_render.models.train import summary_lines, train
     from msps_render.pipeline.outdir import check_writable
@@ -186,6 +203,10 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
                    threads: Optional[int] = typer.Option(None, help="torch CPU threads"),
                    steps: List[str] = _steps_option(True, DEFAULT_PHOTOS),
                    quiet: bool = typer.Option(False, help="no progress lines"),
+                   lights: Optional[str] = typer.Option(None, metavar="all|K", help="classic photometric stereo: "
+                                                        "every photo of each capture (all) or K spread evenly, "
+                                                        "each with its own light; checkpoints are classic "
+                                                        "networks (default: the three-light composite)"),
                    selfcal: bool = OLD_SELFCAL, refine: bool = OLD_REFINE, mirror: bool = OLD_MIRROR,
                    segments: bool = OLD_SEGMENTS, netcal: bool = OLD_NETCAL):
     """Score checkpoints and calibrated Lambertian PS on real captures (validation only: never train on
@@ -199,6 +220,21 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
     from msps_render.models.realbench import run_bench_real, summary_table
 
     check_new_out(out)
+    if lights is not None:  # classic N-light mode: the capture's own lights, classic networks
+        from msps_render.models.realbench_lights import run_bench_real_lights, table_lines
+
+        if lights != "all" and not lights.isdigit():
+            raise InputError("--lights", f"give 'all' or a number of lights, got {lights!r}")
+        if threads:
+            import torch
+
+            torch.set_num_threads(threads)
+        s = run_bench_real_lights(captures, out, checkpoint, lights if lights == "all" else int(lights),
+                                  progress=not quiet)
+        for line in table_lines(s):
+            typer.echo(line)
+        typer.echo("wrote " + ", ".join(s["files"]))
+        return
     columns = _steps(steps, True, DEFAULT_PHOTOS, selfcal=selfcal, segments=segments, netcal=netcal,
                      mirror=mirror, refine=refine)
     try:
