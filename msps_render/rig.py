@@ -21,6 +21,12 @@ normal n reads  I[s, m] = rho/pi * sum_{n in s} C[m, n] * a_n(x) * max(0, n . l_
 with l_n(x) the unit vector from x to light n (constant for directional lights) and a_n(x) the
 near-light factor (1 for directional; (d_n/|p_n - x|)^2 * cos^mu(angle off the LED axis) for a
 point light at p_n of distance d_n from the origin, so C is its reading at the origin).
+
+Spectral rigs (scene mode "spectral", `spectral_rig`): the lights are LED spectra e_n (`led_peaks_nm`,
+`spectra`) and the camera's M channels are sensitivities S_m over wavelength (narrow-band `filters`, or
+a measured `camera` table); then C[m, n] = E_n * Σ_λ e_n(λ) S_m(λ) / Σ_m' Σ_λ e_n(λ) S_m'(λ), the
+closed-form spectral integral normalised as `spectral.effective_crosstalk` (E_n: the light's irradiance),
+stored per frame in `RigSpec.crosstalk` (the shares) and the lights' `rgb` (their sums).
 """
 from __future__ import annotations
 
@@ -30,7 +36,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_serializer, model_validator
 
 from msps_render.config_io import FrozenModel, StrictModel
 from msps_render.errors import InputError
@@ -44,6 +50,9 @@ CHANNEL_NAMES = {"rgb": ("R", "G", "B"), "mono": ("Y",)}
 COLOURS = {"white": (1.0, 1.0, 1.0), "red": (1.0, 0.0, 0.0), "green": (0.0, 1.0, 0.0), "blue": (0.0, 0.0, 1.0)}
 MIN_LIGHT_DISTANCE = 1.0  # objects fit in the unit sphere: a point light must lie outside it
 MAX_SLANT_DEG = 89.0
+SPECTRAL_SPEC_FIELDS = ("filters", "camera", "crosstalk")  # RigSpec: left out of RGB rigs' JSON
+SPECTRAL_CONFIG_FIELDS = ("filters", "camera", "led_peaks_nm", "led_fwhm_nm", "spectra")  # RigConfig: same
+DEFAULT_SPECTRAL_CAMERA = "Nikon 5100 (NPL)"  # as msps_render.render.spectral.DEFAULT_CAMERA
 
 
 # ================================================================ the per-frame value
@@ -63,12 +72,46 @@ class RigSpec(FrozenModel):
     nominal_rgb: tuple[tuple[float, float, float], ...] = Field(description="the calibration's light RGB "
                                                                       "(irradiance; point lights: intensity)")
     allow_unseparable: bool = False
+    # spectral rigs (scene mode "spectral"): the camera's channels are sensitivities over wavelength, the
+    # lights carry spectra (`LightSpec.spectrum`; `LightSpec.rgb` then only counts by its sum, the light's
+    # reading summed over the channels on a white surface facing it), and `channels` is empty
+    filters: tuple[tuple[float, float], ...] = Field((), description="spectral rigs: channel m is a Gaussian "
+                                                                    "filter [centre nm, FWHM nm]")
+    camera: str | None = Field(None, description="spectral rigs without filters: the camera's sensitivities "
+                                                 "(colour-science name or CSV, msps_render.spectral)")
+    crosstalk: tuple[tuple[float, ...], ...] | None = Field(
+        None, description="spectral rigs: (M, N) share of light n's camera signal in channel m on a white "
+                          "surface facing it (columns sum to 1), the closed-form integral of its spectrum "
+                          "times the channel's sensitivity")
+
+    @model_serializer(mode="wrap")
+    def _without_absent_spectral(self, handler):
+        """RGB rigs serialise without the spectral fields: their stored scenes keep their bytes."""
+        d = handler(self)
+        if isinstance(d, dict):
+            for k in SPECTRAL_SPEC_FIELDS:
+                if d.get(k) in ((), [], None):
+                    d.pop(k, None)
+        return d
 
     @model_validator(mode="after")
     def _check(self) -> "RigSpec":
-        if len(self.channel_names) != len(self.channels):
-            raise ValueError(f"{len(self.channel_names)} channel names for {len(self.channels)} channels")
         n = len(self.nominal_dirs)
+        if self.crosstalk is None:
+            if self.filters or self.camera is not None:
+                raise ValueError("a spectral rig (filters or camera) needs its crosstalk")
+            if len(self.channel_names) != len(self.channels):
+                raise ValueError(f"{len(self.channel_names)} channel names for {len(self.channels)} channels")
+        else:
+            m = len(self.crosstalk)
+            if self.channels:
+                raise ValueError("a spectral rig's channels are its filters or camera, not rows on R, G, B")
+            if bool(self.filters) == (self.camera is not None):
+                raise ValueError("a spectral rig needs either filters or a camera")
+            if self.filters and len(self.filters) != m:
+                raise ValueError(f"{len(self.filters)} filters for {m} crosstalk rows")
+            if len(self.channel_names) != m or any(len(row) != n for row in self.crosstalk):
+                raise ValueError(f"crosstalk must be (channels {len(self.channel_names)}, lights {n})")
         if len(self.nominal_rgb) != n:
             raise ValueError(f"{len(self.nominal_rgb)} nominal colours for {n} lights")
         if self.anisotropy and len(self.anisotropy) != n:
@@ -81,7 +124,12 @@ class RigSpec(FrozenModel):
 
     @property
     def n_channels(self) -> int:
-        return len(self.channels)
+        return len(self.channel_names)
+
+    @property
+    def is_spectral(self) -> bool:
+        """Rendered in spectral mode: channels are sensitivities over wavelength, lights carry spectra."""
+        return self.crosstalk is not None
 
 
 # ================================================================ the numbers a solver reads
@@ -178,7 +226,7 @@ def rig_of_spec(spec) -> Rig:
     if r is None:
         C = np.array(spec.crosstalk, np.float64) if spec.crosstalk is not None else _unit_columns(rgb.T)
         return Rig(dirs, C, positions=pos if np.isfinite(pos).any() else None)
-    C = np.asarray(r.channels, np.float64) @ (rgb / _dist2(spec.lights)[:, None]).T  # (M, N)
+    C = _channel_by_light(r, rgb, spec.lights)  # (M, N)
     mu = np.asarray(r.anisotropy, np.float64) if r.anisotropy else None
     return Rig(dirs, C, shots=r.shots, positions=pos if np.isfinite(pos).any() else None, anisotropy=mu)
 
@@ -189,13 +237,21 @@ def nominal_rig_of_spec(spec) -> Rig:
     r = spec.rig
     if r is None:
         return true
-    C = np.asarray(r.channels, np.float64) @ (np.asarray(r.nominal_rgb, np.float64) / _dist2(spec.lights)[:, None]).T
+    C = _channel_by_light(r, np.asarray(r.nominal_rgb, np.float64), spec.lights)
     pos = None
     if true.positions is not None:  # a point light's nominal position: its true distance along the nominal direction
         d = np.linalg.norm(np.nan_to_num(true.positions), axis=1)
         pos = np.where(np.isfinite(true.positions), np.asarray(r.nominal_dirs) * d[:, None], np.nan)
     return Rig(np.asarray(r.nominal_dirs, np.float64), C, shots=r.shots, positions=pos,
                anisotropy=true.anisotropy)
+
+
+def _channel_by_light(r: RigSpec, rgb: np.ndarray, lights) -> np.ndarray:
+    """(M, N) C: RGB rigs, channels @ (rgb / d^2); spectral rigs, each light's channel shares times its
+    reading summed over the channels (sum(rgb) / d^2): C[m, n] = E_n * Σ_λ e_n(λ) S_m(λ) / Σ_m' (same)."""
+    if r.crosstalk is not None:
+        return np.asarray(r.crosstalk, np.float64) * (np.asarray(rgb, np.float64).sum(axis=1) / _dist2(lights))[None, :]
+    return np.asarray(r.channels, np.float64) @ (np.asarray(rgb, np.float64) / _dist2(lights)[:, None]).T
 
 
 def _dist2(lights) -> np.ndarray:
@@ -266,11 +322,17 @@ def lambertian_shots(rig: Rig, normal: np.ndarray, albedo, points: np.ndarray | 
 
 # ================================================================ composing the camera's images
 def compose_shots(rig: RigSpec, per_light: np.ndarray, env: np.ndarray | None = None) -> np.ndarray:
-    """(S, H, W, M) camera images from (N, H, W, 3) per-light RGB radiance (+ the environment in every shot).
+    """(S, H, W, M) camera images from (N, H, W, 3) per-light RGB radiance (+ the environment in every shot);
+    spectral rigs: from (N, H, W, M) per-light camera channels (the renderer integrates them already).
 
     Linear in the per-light images by construction: shots are sums of lights, channels are linear
     maps of R, G, B -- so a sequential capture sums to the multiplexed one exactly (before noise)."""
-    C = np.asarray(rig.channels, np.float32)  # (M, 3)
+    if rig.is_spectral:
+        C = np.eye(rig.n_channels, dtype=np.float32)
+        if per_light.shape[-1] != len(C):
+            raise ValueError(f"a spectral rig of {len(C)} channels got per-light images of {per_light.shape[-1]}")
+    else:
+        C = np.asarray(rig.channels, np.float32)  # (M, 3)
     out = np.empty((len(rig.shots),) + per_light.shape[1:3] + (len(C),), np.float32)
     base = env.astype(np.float32) if env is not None else None
     for s, shot in enumerate(rig.shots):
@@ -279,7 +341,7 @@ def compose_shots(rig: RigSpec, per_light: np.ndarray, env: np.ndarray | None = 
             acc += per_light[k]
         if base is not None:
             acc += base
-        out[s] = acc @ C.T
+        out[s] = acc if rig.is_spectral else acc @ C.T
     return out
 
 
@@ -341,12 +403,70 @@ class RigConfig(StrictModel):
     allow_unseparable: bool = Field(False, description="allow a shot with more lights than camera channels "
                                                        "(universal methods; it cannot be demultiplexed)")
     errors: CalibrationErrors = Field(default_factory=CalibrationErrors)
+    # ---- spectral mode (scene.mode = "spectral"): narrow-band rigs, N LED spectra x an M-channel camera
+    filters: list[tuple[float, float]] | None = Field(
+        None, description="spectral mode: the camera's channels as narrow-band filters, one [centre_nm, "
+                          "fwhm_nm] per channel (Gaussian, unit peak; centre +- 2 FWHM inside 360-830 nm); "
+                          "replaces channels")
+    camera: str | None = Field(None, description="spectral mode, instead of filters: measured sensitivities, a "
+                                                 "colour-science camera (3 channels) or a CSV 'wavelength, "
+                                                 "s1..sM' (default without filters: Nikon 5100 (NPL))")
+    led_peaks_nm: list[float] | None = Field(None, description="spectral mode: one Gaussian LED per light, its "
+                                                               "peak wavelength (nm); replaces colours")
+    led_fwhm_nm: float = Field(20.0, ge=1.0, le=400.0, description="spectral mode: FWHM of every led_peaks_nm "
+                                                                   "LED (nm)")
+    spectra: list[str] | None = Field(None, description="spectral mode, instead of led_peaks_nm: one emission "
+                                                        "spectrum per light ('led:PEAK:FWHM', 'flat', 'd65' "
+                                                        "or a CSV path); default: 'flat' (white)")
+
+    @model_serializer(mode="wrap")
+    def _without_absent_spectral(self, handler):
+        """RGB rigs serialise (and hash) as before spectral rigs existed: same configs, same shards."""
+        d = handler(self)
+        if isinstance(d, dict):
+            for k in SPECTRAL_CONFIG_FIELDS:
+                if k in d and getattr(self, k) == type(self).model_fields[k].default:
+                    d.pop(k)
+        return d
 
     @field_validator("slant_range_deg")
     @classmethod
     def _range(cls, v):
         if not 0.0 <= v[0] <= v[1] <= MAX_SLANT_DEG:
             raise ValueError(f"slant_range_deg must satisfy 0 <= lo <= hi <= {MAX_SLANT_DEG:g}, got {list(v)}")
+        return v
+
+    @field_validator("filters")
+    @classmethod
+    def _filters(cls, v):
+        from msps_render.spectral.spectra import band_problem
+
+        if v is None:
+            return v
+        if not 1 <= len(v) <= 64:
+            raise ValueError(f"filters must list 1 to 64 channels, got {len(v)}")
+        for m, (c, w) in enumerate(v):
+            problem = band_problem(c, w)
+            if problem:
+                raise ValueError(f"filters[{m}] = [{c:g}, {w:g}]: {problem}")
+        return v
+
+    @field_validator("camera")
+    @classmethod
+    def _camera(cls, v):
+        from msps_render.spectral.spectra import sensitivity_table
+
+        if v is not None:
+            sensitivity_table(v)  # InputError (a ValueError) naming the camera or file
+        return v
+
+    @field_validator("spectra")
+    @classmethod
+    def _spectra(cls, v):
+        from msps_render.spectral.spectra import validate_light_id
+
+        for sid in v or ():
+            validate_light_id(sid)
         return v
 
     @model_validator(mode="after")
@@ -356,7 +476,22 @@ class RigConfig(StrictModel):
             raise ValueError(f"colours has {len(self.colours)} entries for {n} lights")
         if isinstance(self.colours, list) and any(min(c) < 0 or not math.isfinite(sum(c)) for c in self.colours):
             raise ValueError("colours must be finite and >= 0")
-        m = len(channel_matrix(self.channels))
+        if self.filters is not None and self.camera is not None:
+            raise ValueError("give the camera's channels as filters or as camera, not both")
+        if self.led_peaks_nm is not None and self.spectra is not None:
+            raise ValueError("give the lights' spectra as led_peaks_nm or as spectra, not both")
+        for key in ("led_peaks_nm", "spectra"):
+            v = getattr(self, key)
+            if v is not None and len(v) != n:
+                raise ValueError(f"{key} has {len(v)} entries for {n} lights")
+        if self.led_peaks_nm is not None:
+            from msps_render.spectral.spectra import band_problem
+
+            for k, peak in enumerate(self.led_peaks_nm):
+                problem = band_problem(peak, self.led_fwhm_nm)
+                if problem:
+                    raise ValueError(f"led_peaks_nm[{k}] = {peak:g} with led_fwhm_nm {self.led_fwhm_nm:g}: {problem}")
+        m = self.n_channels()
         for s, shot in enumerate(self.shot_list(n)):
             bad = [k for k in shot if not 0 <= k < n]
             if bad or not shot:
@@ -379,7 +514,7 @@ class RigConfig(StrictModel):
     def image_shape(self) -> tuple[int, int, int, bool]:
         """(lights, images per patch, channels, near lights?) of this rig: what storage depends on."""
         n = self.count()
-        return n, len(self.shot_list(n)), len(channel_matrix(self.channels)), (
+        return n, len(self.shot_list(n)), self.n_channels(), (
             self.layout == "grid" or self.kind == "point")
 
     def describe(self) -> str:
@@ -387,6 +522,47 @@ class RigConfig(StrictModel):
         cap = "multiplexed (one image)" if self.capture == "multiplexed" else (
             "sequential (one image per light)" if self.capture == "sequential" else f"{s} shots")
         return f"{self.layout}: {n} {'near point' if near else 'directional'} lights x {m} channel(s), {cap}"
+
+    def n_channels(self) -> int:
+        """Camera channels: the filters or the camera's in a spectral rig, else the rows of `channels`."""
+        if self.filters is not None:
+            return len(self.filters)
+        if self.camera is not None:
+            from msps_render.spectral.spectra import sensitivity_table
+
+            return int(sensitivity_table(self.camera).shape[1])
+        return len(channel_matrix(self.channels))
+
+    def spectral_keys(self) -> list[str]:
+        """The spectral-mode keys this table sets (empty: an RGB rig's table)."""
+        return [k for k in SPECTRAL_CONFIG_FIELDS
+                if getattr(self, k) != type(self).model_fields[k].default]
+
+    def check_mode(self, mode: str, source: str = "scene.rig") -> None:
+        """One InputError line naming the key when this table does not fit the scene's `mode`."""
+        if mode != "spectral":
+            keys = self.spectral_keys()
+            if keys:
+                raise InputError(f"{source}.{keys[0]}", f"{keys[0]} is for scene mode 'spectral' (camera filters "
+                                                         f"and light spectra); this scene renders in mode '{mode}' "
+                                                         f"(set scene.mode = \"spectral\", or use channels/colours)")
+            return
+        if self.channels != "rgb":
+            raise InputError(f"{source}.channels", "channels (weights on R, G, B) is for mode 'rgb'; a spectral "
+                                                   "rig's camera channels are its filters or camera")
+        if self.colours != "white":
+            raise InputError(f"{source}.colours", "colours (R, G, B) is for mode 'rgb'; a spectral rig's lights "
+                                                  "take led_peaks_nm or spectra")
+        if self.errors.colour_error > 0:
+            raise InputError(f"{source}.errors.colour_error", "colour_error (R, G, B gains) is for mode 'rgb'; a "
+                                                              "spectral rig's lights have spectra (use "
+                                                              "intensity_error)")
+
+    def light_spectra(self, n: int) -> list[str]:
+        """Spectral mode: one spectrum id per light (led_peaks_nm, spectra, else flat white)."""
+        if self.led_peaks_nm is not None:
+            return [f"led:{p:g}:{self.led_fwhm_nm:g}" for p in self.led_peaks_nm]
+        return list(self.spectra) if self.spectra is not None else ["flat"] * n
 
     def shot_list(self, n: int) -> tuple[tuple[int, ...], ...]:
         if self.capture == "multiplexed":
@@ -577,3 +753,56 @@ def sample_rig(cfg: RigConfig, rng: np.random.Generator, source: str = "scene.ri
                    nominal_rgb=tuple(tuple(float(x) for x in c) for c in rgb_nominal),
                    allow_unseparable=cfg.allow_unseparable)
     return tuple(lights), spec
+
+
+# ================================================================ spectral rigs
+def spectral_rig(cfg: RigConfig, lights, spec: RigSpec, source: str = "scene.rig"):
+    """(lights, RigSpec) of `sample_rig` made spectral (scene mode "spectral"; draws nothing more).
+
+    Light n gets its spectrum (`RigConfig.light_spectra`); the camera its M channels (filters, or a
+    measured camera); C[m, n] = E_n * Σ_λ e_n(λ) S_m(λ) / Σ_m' Σ_λ e_n(λ) S_m'(λ) with E_n the light's
+    irradiance (x its calibration gain): the closed-form spectral integral, columns normalised as
+    `spectral.effective_crosstalk`, stored as the shares `RigSpec.crosstalk` and the sums
+    `LightSpec.rgb` (three equal thirds; the renderer scales light n's spectrum so that its reading,
+    summed over the channels, on a white surface facing it is sum(rgb), as spectral mode does)."""
+    from msps_render.spectral.crosstalk import rig_crosstalk
+
+    cfg.check_mode("spectral", source)
+    ids = cfg.light_spectra(len(lights))
+    S = config_sensitivities(cfg)
+    key = "led_peaks_nm" if cfg.led_peaks_nm is not None else "spectra"
+    shares = rig_crosstalk(ids, S, f"{source}.{key}")
+    camera = None if cfg.filters is not None else (cfg.camera or DEFAULT_SPECTRAL_CAMERA)
+    if cfg.filters is not None:
+        names = tuple(f"{c:g}nm" for c, _ in cfg.filters)
+    else:
+        names = ("R", "G", "B") if S.shape[1] == 3 else tuple(f"C{m}" for m in range(S.shape[1]))
+
+    def grey(rgb):  # white light of `irradiance`: R, G, B each irradiance in RGB mode, sum irradiance here
+        t = float(sum(rgb)) / 9.0
+        return (t, t, t)
+
+    lights = tuple(l.model_copy(update={"rgb": grey(l.rgb), "spectrum": sid}) for l, sid in zip(lights, ids))
+    spec = spec.model_copy(update={
+        "channels": (), "channel_names": names, "filters": tuple(tuple(float(x) for x in f) for f in cfg.filters or ()),
+        "camera": camera, "crosstalk": tuple(tuple(float(x) for x in row) for row in shares),
+        "nominal_rgb": tuple(grey(c) for c in spec.nominal_rgb)})
+    return lights, RigSpec.model_validate(spec.model_dump())
+
+
+def config_sensitivities(cfg: RigConfig) -> np.ndarray:
+    """(len(GRID), M) channel sensitivities of a spectral `[scene.rig]` table."""
+    from msps_render.spectral.spectra import filter_sensitivities, sensitivity_table
+
+    if cfg.filters is not None:
+        return filter_sensitivities(cfg.filters)
+    return sensitivity_table(cfg.camera or DEFAULT_SPECTRAL_CAMERA)
+
+
+def rig_sensitivities(rig: RigSpec) -> np.ndarray:
+    """(len(GRID), M) channel sensitivities of a spectral rig (what the renderer's film integrates)."""
+    from msps_render.spectral.spectra import filter_sensitivities, sensitivity_table
+
+    if not rig.is_spectral:
+        raise ValueError("an RGB rig has no sensitivities (its channels are weights on R, G, B)")
+    return filter_sensitivities(rig.filters) if rig.filters else sensitivity_table(rig.camera)

@@ -17,7 +17,9 @@ Spectral variants: a light's spectrum is narrow, so each emitter gets its own
 four wavelengths, drawn from its own camera-channel bands (`set_bands`: light k:
 E_k(λ)·S_i(λ) with the light emitting a flat unit spectrum; environment: S_i(λ)),
 and its own throughput along the shared path; the AOVs are camera channels,
-Σ_λ L(λ)·band_i(λ)/pdf(λ) (see `render.spectral`).  All groups reuse the same
+Σ_λ L(λ)·band_i(λ)/pdf(λ) (see `render.spectral`).  A camera of M channels (`channels`
+property; narrow-band rigs, `msps_render.rig`) has M bands per emitter and M AOVs
+`<emitter id>.C0 .. C{M-1}`; three channels keep the names R, G, B.  All groups reuse the same
 random numbers for BSDF sampling, which gives the same direction for every
 BSDF kind we render (their lobe choice does not depend on wavelength; checked
 in tests/test_multilight.py).
@@ -70,40 +72,46 @@ class PartTable:
     table: object  # mi.BSDFPtr, opaque
 
 
-def channel_names(emitter_id: str) -> list[str]:
-    """The AOV channel names of one emitter's image."""
-    return [f"{emitter_id}.{c}" for c in _CHANNELS]
+def channel_names(emitter_id: str, n_channels: int = 3) -> list[str]:
+    """The AOV channel names of one emitter's image: R, G, B, or C0 .. C{M-1} for M != 3 camera channels."""
+    names = _CHANNELS if n_channels == 3 else tuple(f"C{i}" for i in range(n_channels))
+    return [f"{emitter_id}.{c}" for c in names]
 
 
 def integrator_dict(kind: str, max_depth: int, emitter_ids: Sequence[str], hide_emitters: bool = True,
-                    anisotropy: Sequence[float] = ()) -> dict:
+                    anisotropy: Sequence[float] = (), channels: int = 3) -> dict:
     """`mi.load_dict` description of the one-pass integrator (registers it for the current variant).
 
     `kind` "direct" is one bounce (Mitsuba `direct` with one emitter and one BSDF sample).
     `anisotropy`: per emitter, the LED exponent mu of a point light (radiant intensity x cos^mu of the
     angle off its axis, the axis toward the scene origin); empty or 0: isotropic, as Mitsuba's `point`.
+    `channels`: camera channels per emitter (spectral variants; RGB variants: 3).
     """
     register()
     d = {"type": PLUGIN_NAME, "max_depth": 2 if kind == "direct" else int(max_depth),
          "rr_depth": RR_DEPTH, "hide_emitters": bool(hide_emitters), "emitters": ",".join(emitter_ids)}
     if any(anisotropy):
         d["anisotropy"] = ",".join(f"{float(m):.9g}" for m in anisotropy)
+    if channels != 3:
+        d["channels"] = int(channels)
     return d
 
 
 def band_table(grid: np.ndarray, bands: np.ndarray) -> dict[str, np.ndarray]:
     """Sampling table of the wavelength density ∝ Σ_i band_i (piecewise linear, like the bands).
 
+    `bands` (N, M): M camera channels (3: r, g, b).
     Returns float32 arrays: knots `grid` (N,), per-bin inclusive/exclusive CDF `cdf_hi`,
     `cdf_lo` (N-1,), the band sum at each bin's left/right knot `s` (N-1, 2), and per bin the
-    bands at its left/right knot times the normalisation, `c0`, `c1` (N-1, 3), so that
+    bands at its left/right knot times the normalisation, `c0`, `c1` (N-1, M), so that
     band_i(λ)/pdf(λ) = lerp(c0, c1, t)_i / lerp(s0, s1, t) exactly.  (A piecewise-constant pdf
     would let band/pdf vary inside each 1 nm bin: 4x the colour noise on a 20 nm LED's flanks.)
     """
     grid = np.asarray(grid, np.float64)
     bands = np.asarray(bands, np.float64)
-    if grid.ndim != 1 or bands.shape != (len(grid), 3) or len(grid) < 2 or np.any(np.diff(grid) <= 0):
-        raise ValueError(f"bands must be (N, 3) on an increasing grid of N >= 2 wavelengths, got {bands.shape}")
+    if (grid.ndim != 1 or bands.ndim != 2 or bands.shape[0] != len(grid) or bands.shape[1] < 1 or len(grid) < 2
+            or np.any(np.diff(grid) <= 0)):
+        raise ValueError(f"bands must be (N, M) on an increasing grid of N >= 2 wavelengths, got {bands.shape}")
     if np.any(~np.isfinite(bands)) or np.any(bands < 0):
         raise ValueError("bands must be finite and >= 0")
     ssum = bands.sum(1)
@@ -132,12 +140,13 @@ def _mis_weight(pdf_a, pdf_b):
 def _sample_wavelengths(mi, table: dict, u):
     """Four stratified wavelengths from `table` (exact inversion of the piecewise-linear density)
     and, per camera channel, the lane weights band_i(λ_j)/pdf(λ_j)/4 (the channel estimate is
-    Σ_j L(λ_j)·weight_ij)."""
+    Σ_j L(λ_j)·weight_ij); as many channels as the table's bands."""
     import drjit as dr
 
     n_lanes = dr.size_v(mi.UnpolarizedSpectrum)
     n_bins = dr.width(table["cdf_hi"])
-    lam, weights = [], [[], [], []]
+    n_ch = dr.width(table["c0"]) // n_bins
+    lam, weights = [], [[] for _ in range(n_ch)]
     for j in range(n_lanes):
         uj = u + j / n_lanes
         uj = dr.select(uj >= 1.0, uj - 1.0, uj)
@@ -153,11 +162,18 @@ def _sample_wavelengths(mi, table: dict, u):
         g0 = dr.gather(mi.Float, table["grid"], idx)
         g1 = dr.gather(mi.Float, table["grid"], idx + 1)
         lam.append(dr.lerp(g0, g1, t))
-        c = dr.lerp(dr.gather(mi.Vector3f, table["c0"], idx), dr.gather(mi.Vector3f, table["c1"], idx), t)
         ssum = dr.lerp(s.x, s.y, t)
-        w = c * dr.select(ssum > 0, 1.0 / (n_lanes * ssum), 0.0)
-        for i in range(3):
-            weights[i].append(w[i])
+        if n_ch == 3:  # r, g, b (the kernel of three-channel cameras, unchanged)
+            c = dr.lerp(dr.gather(mi.Vector3f, table["c0"], idx), dr.gather(mi.Vector3f, table["c1"], idx), t)
+            w = c * dr.select(ssum > 0, 1.0 / (n_lanes * ssum), 0.0)
+            for i in range(3):
+                weights[i].append(w[i])
+        else:  # M channels: the bin's row of M values, one gather per channel
+            scale = dr.select(ssum > 0, 1.0 / (n_lanes * ssum), 0.0)
+            for i in range(n_ch):
+                k = idx * n_ch + i
+                weights[i].append(dr.lerp(dr.gather(mi.Float, table["c0"], k),
+                                          dr.gather(mi.Float, table["c1"], k), t) * scale)
     wavelengths = mi.UnpolarizedSpectrum(*lam)
     return wavelengths, [mi.UnpolarizedSpectrum(*w) for w in weights]
 
@@ -192,6 +208,10 @@ def _plugin_class(variant: str):
             if mus and len(mus) != len(self.emitter_ids):
                 raise ValueError(f"{PLUGIN_NAME}: {len(mus)} anisotropy exponents for {len(self.emitter_ids)} emitters")
             self.anisotropy = mus or [0.0] * len(self.emitter_ids)
+            self.n_channels = int(props.get("channels", 3))
+            if self.n_channels < 1 or (self.n_channels != 3 and not mi.is_spectral):
+                raise ValueError(f"{PLUGIN_NAME}: {self.n_channels} camera channels; RGB variants write R, G, B "
+                                 f"(3), spectral variants 1 or more")
             if self.max_depth < 0:
                 self.max_depth = 2 ** 31 - 1
             self.tables: dict[str, dict] = {}
@@ -199,10 +219,14 @@ def _plugin_class(variant: str):
 
         # ---- configuration
         def set_bands(self, grid: np.ndarray, bands: dict[str, np.ndarray]) -> None:
-            """Spectral variants: camera-channel bands (N, 3) on `grid` for every emitter id."""
+            """Spectral variants: camera-channel bands (N, M) on `grid` for every emitter id (M = `channels`)."""
             missing = [e for e in self.emitter_ids if e not in bands]
             if missing:
                 raise ValueError(f"{PLUGIN_NAME}: no bands for emitters {missing}")
+            wrong = [e for e in self.emitter_ids if np.shape(bands[e])[1:] != (self.n_channels,)]
+            if wrong:
+                raise ValueError(f"{PLUGIN_NAME}: bands of {wrong[0]} have shape {np.shape(bands[wrong[0]])}, "
+                                 f"expected (N, {self.n_channels}) (the integrator's channels)")
             self.tables = {}
             for e in self.emitter_ids:
                 t = band_table(grid, bands[e])
@@ -234,7 +258,7 @@ def _plugin_class(variant: str):
             return dr.gather(mi.BSDFPtr, self.parts.table, part, active & si.is_valid())
 
         def aov_names(self):
-            return [c for e in self.emitter_ids for c in channel_names(e)]
+            return [c for e in self.emitter_ids for c in channel_names(e, self.n_channels)]
 
         def to_string(self):
             return (f"MultiLightIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
@@ -377,7 +401,7 @@ def _plugin_class(variant: str):
                 if spectral:
                     g = group_of[e]
                     a = mi.unpolarized_spectrum(acc[e])
-                    rgb = [dr.sum(a * lane_w[g][i]) for i in range(3)]
+                    rgb = [dr.sum(a * lane_w[g][i]) for i in range(self.n_channels)]
                 else:
                     rgb = [acc[e][i] for i in range(3)]
                 aovs.extend(dr.select(valid_ray, c, 0.0) for c in rgb)
@@ -402,13 +426,20 @@ _REGISTERED: set[str] = set()
 
 
 def read_emitter_images(film, emitter_ids: Sequence[str]) -> list[np.ndarray]:
-    """Each emitter's (H, W, 3) float32 image, read by AOV channel name from the developed film."""
+    """Each emitter's (H, W, 3) float32 image, read by AOV channel name from the developed film
+    ((H, W, M) when the integrator wrote M != 3 camera channels, `<id>.C0 ..`)."""
     bmp = film.bitmap()
     names = [f.name for f in bmp.struct_()]
     data = np.array(bmp, dtype=np.float32, copy=False)
     out = []
     for e in emitter_ids:
+        m = 0
+        while f"{e}.C{m}" in names:
+            m += 1
         try:
+            if m and m != 3:
+                out.append(np.ascontiguousarray(data[..., [names.index(c) for c in channel_names(e, m)]]))
+                continue
             idx = [names.index(c) for c in channel_names(e)]
         except ValueError:
             raise RuntimeError(f"film has no channels for emitter '{e}' (channels: {names})") from None

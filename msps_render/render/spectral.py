@@ -21,19 +21,28 @@ Reuses the RGB scene description and edits it:
 
 The effective crosstalk (columns: share of each light's signal per channel) is
 computed from the spectra and stored in `frame.spec.crosstalk` and `frame.meta`.
+
+Spectral rigs (`SceneSpec.rig` with `RigSpec.crosstalk`, msps_render.rig): the camera has M
+channels (narrow-band filters or a measured table), so the bands above are the rig's M
+sensitivities (`rig_sensitivities`), every per-light and environment image has M channels,
+and the frame's `shots` (S, H, W, M) are sums of them (`compose_shots`).  `image` is then a
+display image only: the sum of all lights, each channel shown in the colour of its band
+(`spectra.display_weights`).
 """
 from __future__ import annotations
 
 import numpy as np
 
+from msps_render.errors import InputError
 from msps_render.frame import Frame
 from msps_render.render.emitters import render_emitters_one_pass, render_emitters_separately
-from msps_render.render.ground_truth import ground_truth
+from msps_render.render.ground_truth import ground_truth, pixel_points
 from msps_render.render.multilight import integrator_dict
 from msps_render.render.scene_dict import ENV_KEY, build_scene_dict, light_key, one_pass, with_lights
+from msps_render.rig import compose_shots, rig_sensitivities
 from msps_render.scene.envmap import envmap_pixels, irradiance_on_axis
 from msps_render.scene.spec import SceneSpec
-from msps_render.spectral.spectra import GRID, WL_STEP, camera_sensitivities, light_spectrum
+from msps_render.spectral.spectra import GRID, WL_STEP, camera_sensitivities, display_weights, light_spectrum
 
 DEFAULT_CAMERA = "Nikon 5100 (NPL)"
 
@@ -44,11 +53,13 @@ def _irregular(values: np.ndarray) -> dict:
 
 
 def specfilm(spec: SceneSpec, S: np.ndarray) -> dict:
-    """A `specfilm` whose three bands are the columns of S (on GRID), e.g. camera r, g, b."""
+    """A `specfilm` whose bands are the columns of S (on GRID), e.g. camera r, g, b (or M channels)."""
     film = {"type": "specfilm", "width": spec.camera.width, "height": spec.camera.height,
             "rfilter": {"type": "box"}, "component_format": "float32"}
-    for i, name in enumerate(("red", "green", "blue")):
-        film[f"band{i}_{name}"] = _irregular(S[:, i])  # bands are ordered by key
+    m = S.shape[1]
+    names = ("red", "green", "blue") if m == 3 else tuple(f"c{i}" for i in range(m))
+    for i, name in enumerate(names):
+        film[f"band{i:0{len(str(m - 1))}d}_{name}"] = _irregular(S[:, i])  # bands are ordered by key
     return film
 
 
@@ -79,7 +90,12 @@ def emitter_spectrum_for_rgb(mi, rgb) -> np.ndarray:
     return out
 
 
-def env_spectral_factor(mi, spec: SceneSpec, camera_id: str) -> float:
+def _sensitivities(camera) -> np.ndarray:
+    """(len(GRID), M): a camera id's r, g, b sensitivities, or an array of them as given."""
+    return camera_sensitivities(camera).values if isinstance(camera, str) else np.asarray(camera)
+
+
+def env_spectral_factor(mi, spec: SceneSpec, camera_id) -> float:
     """Factor on `EnvSpec.scale` so the env's channel-summed camera response matches RGB mode.
 
     Uses the env's mean colour on a camera-facing plane (exact for a uniformly
@@ -91,13 +107,14 @@ def env_spectral_factor(mi, spec: SceneSpec, camera_id: str) -> float:
     if E.max() <= 0:
         return 1.0
     c = E / E.max()
-    resp = emitter_spectrum_for_rgb(mi, c) @ camera_sensitivities(camera_id).values * WL_STEP
+    resp = emitter_spectrum_for_rgb(mi, c) @ _sensitivities(camera_id) * WL_STEP
     return float(c.sum() / max(resp.sum(), 1e-12))
 
 
-def light_responses(mi, spec: SceneSpec, camera_id: str) -> tuple[list[np.ndarray], np.ndarray]:
-    """Per light: its emission spectrum on GRID (absolute) and its (3,) camera response (white, normal)."""
-    S = camera_sensitivities(camera_id).values
+def light_responses(mi, spec: SceneSpec, camera_id) -> tuple[list[np.ndarray], np.ndarray]:
+    """Per light: its emission spectrum on GRID (absolute) and its (M,) camera response (white, normal);
+    `camera_id`: a camera id (M = 3) or the sensitivities themselves, (len(GRID), M)."""
+    S = _sensitivities(camera_id)
     spectra, R = [], []
     for l in spec.lights:
         if l.spectrum is not None:
@@ -108,12 +125,12 @@ def light_responses(mi, spec: SceneSpec, camera_id: str) -> tuple[list[np.ndarra
             E = emitter_spectrum_for_rgb(mi, l.rgb)
         spectra.append(E)
         R.append(E @ S * WL_STEP)
-    return spectra, (np.stack(R, axis=1) if R else np.zeros((3, 0)))
+    return spectra, (np.stack(R, axis=1) if R else np.zeros((S.shape[1], 0)))
 
 
-def _render(mi, scene, spec: SceneSpec) -> np.ndarray:
+def _render(mi, scene, spec: SceneSpec, channels: int = 3) -> np.ndarray:
     return np.array(mi.render(scene, spp=spec.integrator.spp, seed=spec.integrator.seed),
-                    dtype=np.float32)[..., :3]
+                    dtype=np.float32)[..., :channels]
 
 
 def _render_light_in_film(mi, spec: SceneSpec, k: int, E: np.ndarray, S: np.ndarray):
@@ -125,14 +142,24 @@ def _render_light_in_film(mi, spec: SceneSpec, k: int, E: np.ndarray, S: np.ndar
     only wavelength noise left comes from the reflectance spectrum (a few tenths of
     a percent).  Transport is linear in the emission at each wavelength, so
     ∫ (E_k T) S_i dλ = ∫ T (E_k S_i) dλ: same expectation, same image.
+    A band with no mass (a narrow LED far from a narrow filter: Mitsuba refuses it) is left out of
+    the film and its channel is 0.
     """
     l = spec.lights[k]
     sub = spec.model_copy(update={"lights": (l,), "environment": None})
     d = build_scene_dict(sub, mi)
-    d["sensor"]["film"] = specfilm(spec, S * E[:, None])
+    B = S * E[:, None]
+    peak = B.max(axis=0)
+    live = np.flatnonzero(peak > 1e-20 * peak.max())
+    d["sensor"]["film"] = specfilm(spec, B if len(live) == B.shape[1] else B[:, live])
     d[light_key(0)]["irradiance" if l.kind == "directional" else "intensity"] = {"type": "uniform", "value": 1.0}
     scene = mi.load_dict(d)
-    return scene, _render(mi, scene, spec)
+    img = _render(mi, scene, spec, len(live))
+    if len(live) == B.shape[1]:
+        return scene, img
+    out = np.zeros(img.shape[:2] + (B.shape[1],), np.float32)
+    out[..., live] = img
+    return scene, out
 
 
 def _render_one_pass(mi, spec: SceneSpec, S: np.ndarray, spectra: list[np.ndarray], R: np.ndarray,
@@ -145,7 +172,10 @@ def _render_one_pass(mi, spec: SceneSpec, S: np.ndarray, spectra: list[np.ndarra
     ids = [light_key(k) for k in visible] + ([ENV_KEY] if spec.environment is not None else [])
     integ = spec.integrator
     d = build_scene_dict(spec, mi, env_factor=env_factor or 1.0)  # env scale x factor folded into its bitmap
-    d["integrator"] = integrator_dict(integ.kind, integ.max_depth, ids, hide_emitters=True)
+    mus = list(spec.rig.anisotropy) if spec.rig is not None and spec.rig.anisotropy else []
+    d["integrator"] = integrator_dict(integ.kind, integ.max_depth, ids, hide_emitters=True,
+                                      anisotropy=[mus[k] for k in visible] + [0.0] * (len(ids) - len(visible))
+                                      if mus else (), channels=S.shape[1])
     for k, l in enumerate(spec.lights):
         d[light_key(k)]["irradiance" if l.kind == "directional" else "intensity"] = {"type": "uniform", "value": 1.0}
     bands = {light_key(k): S * spectra[k][:, None] for k in visible}
@@ -153,11 +183,11 @@ def _render_one_pass(mi, spec: SceneSpec, S: np.ndarray, spectra: list[np.ndarra
         bands[ENV_KEY] = S
     scene = mi.load_dict(d)
     gt = ground_truth(mi, scene, spec)
+    zero = np.zeros(gt[0].shape[:2] + (S.shape[1],), np.float32)
     if not ids:  # no visible light and no environment: geometry only
-        return gt, [np.zeros(gt[0].shape, np.float32) for _ in spec.lights]
+        return gt, [zero.copy() for _ in spec.lights]
     scene.integrator().set_bands(GRID, bands)
     got = dict(zip(ids, render_emitters_one_pass(mi, scene, ids, integ.spp, integ.seed)))
-    zero = np.zeros(gt[0].shape, np.float32)
     images = [got.get(light_key(k), zero) for k in range(len(spec.lights))]
     if spec.environment is not None:
         images.append(got[ENV_KEY])
@@ -168,11 +198,22 @@ def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = F
                           emission_in_film: bool = True) -> Frame:
     """Render a spectral SceneSpec. `emission_in_film=False` renders the literal set-up (lights
     emit their spectra, film bands = camera sensitivities; always one render per emitter): same
-    expectation, much noisier for narrow LEDs; kept for validation (tests compare both)."""
-    camera_id = spec.camera_response or DEFAULT_CAMERA
-    S = camera_sensitivities(camera_id).values
-    spectra, R = light_responses(mi, spec, camera_id)
-    env_factor = env_spectral_factor(mi, spec, camera_id) if spec.environment is not None else None
+    expectation, much noisier for narrow LEDs; kept for validation (tests compare both).
+    A spectral rig (`spec.rig.is_spectral`) renders its M channels and composes its shots."""
+    rig = spec.rig
+    if rig is not None and not rig.is_spectral:
+        raise InputError("scene.rig", "this rig's channels are weights on R, G, B (mode 'rgb'); a spectral scene's "
+                                      "rig needs spectral channels (sample it with scene.mode = 'spectral')")
+    if rig is not None:
+        camera_id, S = rig.camera, rig_sensitivities(rig)
+        if not emission_in_film and S.shape[1] != 3:
+            raise ValueError(f"the literal spectral set-up reads three channels; this rig has {S.shape[1]} "
+                             f"(render it with emission_in_film=True)")
+    else:
+        camera_id = spec.camera_response or DEFAULT_CAMERA
+        S = camera_sensitivities(camera_id).values
+    spectra, R = light_responses(mi, spec, S)
+    env_factor = env_spectral_factor(mi, spec, S) if spec.environment is not None else None
     gt = None
     lights_mode = "one-pass" if emission_in_film and one_pass(spec, mi) else "per-light"
     if lights_mode == "one-pass":
@@ -192,11 +233,11 @@ def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = F
             d["sensor"]["film"] = specfilm(spec, S)
             scene = mi.load_dict(d)
             gt = gt or ground_truth(mi, scene, spec)
-            images.append(_render(mi, scene, spec))
+            images.append(_render(mi, scene, spec, S.shape[1]))
         if gt is None:  # no visible light: geometry only
             scene = mi.load_dict(build_scene_dict(ref, mi))
             gt = ground_truth(mi, scene, spec)
-        zero = np.zeros(gt[0].shape, np.float32)
+        zero = np.zeros(gt[0].shape[:2] + (S.shape[1],), np.float32)
         images = [zero if im is None else im for im in images]
     else:
         ref = with_lights(spec, "per-light")
@@ -210,20 +251,33 @@ def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = F
     normal, mask, depth, part = gt
 
     env_img = images.pop() if spec.environment is not None else None
-    per = np.stack(images) if images else np.zeros((0,) + normal.shape, np.float32)
+    per = np.stack(images) if images else np.zeros((0,) + normal.shape[:2] + (S.shape[1],), np.float32)
     image = per.sum(axis=0) + (env_img if env_img is not None else 0.0)
 
     s = R.sum(axis=0)
     M = R / np.where(s > 0, s, 1.0)
-    update = {"camera_response": camera_id}
-    if len(spec.lights) == 3:
-        update["crosstalk"] = tuple(tuple(float(x) for x in row) for row in M)
-    out_spec = spec.model_copy(update=update)
+    shots = points = None
+    if rig is not None:  # the rig's camera images; `image` shows their channels in colour
+        shots = compose_shots(rig, per, env_img)
+        if any(l.kind == "point" for l in spec.lights):
+            points = pixel_points(spec.camera, depth, mask)
+        if rig.filters or S.shape[1] != 3:
+            image = image @ display_weights(S).astype(np.float32)
+        out_spec = spec  # C is the rig's (RigSpec.crosstalk x the lights' sums), not a 3 x 3 SceneSpec.crosstalk
+    else:
+        update = {"camera_response": camera_id}
+        if len(spec.lights) == 3:
+            update["crosstalk"] = tuple(tuple(float(x) for x in row) for row in M)
+        out_spec = spec.model_copy(update=update)
     meta = {"mitsuba_version": mi.__version__, "camera_response": camera_id,
             "crosstalk_effective": M.tolist(), "light_response": R.tolist(),
             "light_spectra": [l.spectrum for l in spec.lights], "env_spectral_factor": env_factor,
             "wavelength_sampling": "emission x camera" if emission_in_film else "camera", "lights": lights_mode,
             "wavelength_range_nm": [float(GRID[0]), float(GRID[-1])]}
+    if rig is not None:
+        meta.update(channel_names=list(rig.channel_names), filters_nm=[list(f) for f in rig.filters],
+                    image="display: channels shown in the colour of their bands" if rig.filters or S.shape[1] != 3
+                    else "sum of the shots' channels")
     return Frame(image=np.ascontiguousarray(image[..., :3], dtype=np.float32), normal=normal, mask=mask,
                  depth=depth, part=part, spec=out_spec, variant=variant,
-                 per_light=per if per_light else None, env_image=env_img, meta=meta)
+                 per_light=per if per_light else None, env_image=env_img, meta=meta, shots=shots, points=points)

@@ -20,7 +20,7 @@ from msps_render.errors import InputError
 from msps_render.scene.envmap import envmap_pixels, expand_path, irradiance_on_axis, missing_asset
 from msps_render.scene.families import expand_families, sample_family_params
 from msps_render.scene.geometry import sample_blobby_coeffs
-from msps_render.rig import RigConfig, sample_rig
+from msps_render.rig import RigConfig, sample_rig, spectral_rig
 from msps_render.scene.lights import PAPER_CROSSTALK, random_crosstalk, three_lights
 from msps_render.scene.materials import sample_analytic, sample_materials
 from msps_render.scene.primitives import PRIMITIVES, sample_primitive_params, unknown_primitive
@@ -319,10 +319,10 @@ def sample_scene(cfg: SceneConfig, rng: np.random.Generator, seed: int | None = 
 
 def _sample_rig_scene(cfg: SceneConfig, rng: np.random.Generator, seed, shape, materials, split) -> SceneSpec:
     """The rest of `sample_scene` for a `[scene.rig]` (same draw order: lights, env, integrator, textures)."""
-    if cfg.mode != "rgb":
-        raise InputError("scene.rig", "rigs render in mode 'rgb' (camera channels are linear maps of R, G, B); "
-                                      "spectral rigs are not supported yet")
+    cfg.rig.check_mode(cfg.mode)  # filters and spectra in mode "spectral" only, channels/colours in "rgb"
     lights, rig = sample_rig(cfg.rig, rng)
+    if cfg.mode == "spectral":  # LED spectra x M camera channels: C is their closed-form integral (no draws)
+        lights, rig = spectral_rig(cfg.rig, lights, rig)
     env = None
     ec = cfg.environment
     if ec.enabled and ec.ratio_range is not None:
@@ -331,6 +331,9 @@ def _sample_rig_scene(cfg: SceneConfig, rng: np.random.Generator, seed, shape, m
         env = environment_for_ratio(ec, lights_plane_irradiance(lights) / len(rig.shots), rng)
     integ = cfg.integrator.model_copy(update={"seed": int(rng.integers(2**31 - 1))})
     if cfg.materials.texture.fraction > 0:
+        if cfg.mode == "spectral":
+            raise InputError("scene.materials.texture", "textures need mode 'rgb' (spectral textures are "
+                                                        "not supported yet)")
         materials = texture_materials(cfg.materials, shape, materials, rng)
     return SceneSpec(shape=shape, split=split, materials=materials, lights=lights, environment=env,
                      camera=cfg.camera, integrator=integ, mode=cfg.mode, seed=seed, rig=rig)

@@ -66,3 +66,26 @@ def offdiagonal_share(M: np.ndarray) -> float:
     M = M / M.sum(axis=0, keepdims=True)
     k = min(M.shape)
     return float(1.0 - np.diag(M[:k, :k]).mean())
+
+
+def channel_responses(light_ids, S: np.ndarray) -> np.ndarray:
+    """(M, N) raw responses R[m, n] = Σ_λ E_n(λ) S_m(λ) Δλ of unit-peak light spectra in a camera of any
+    number of channels (sensitivities S (len(GRID), M), e.g. `spectra.filter_sensitivities`)."""
+    E = np.stack([light_spectrum(l).values for l in light_ids], axis=1)  # (G, N)
+    return np.asarray(S, np.float64).T @ E * WL_STEP
+
+
+def rig_crosstalk(light_ids, S: np.ndarray, source: str = "scene.rig") -> np.ndarray:
+    """(M, N) effective crosstalk of N light spectra in an M-channel camera: `channel_responses` with
+    each column normalised to sum 1, as `effective_crosstalk` does for three channels.  A light that
+    the camera all but misses (under a millionth of its emission weighted by the peak sensitivity) is
+    one InputError line naming `source`: its column would be the noise of far Gaussian tails."""
+    R = channel_responses(light_ids, S)
+    s = R.sum(axis=0)
+    own = np.array([light_spectrum(l).values.sum() * WL_STEP for l in light_ids])
+    dark = s <= 1e-6 * own * float(np.max(S))
+    if dark.any():
+        k = int(np.argmax(dark))
+        raise InputError(source, f"light {k} ('{list(light_ids)[k]}') gives no signal in any camera channel "
+                                 f"(its spectrum does not overlap the filters)")
+    return R / s

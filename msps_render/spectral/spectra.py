@@ -49,8 +49,9 @@ def _sd(values: np.ndarray, name: str):
 
 
 # ------------------------------------------------------------------------ CSV
-def read_csv_table(path: str | Path, n_values: int, what: str) -> tuple[np.ndarray, np.ndarray]:
+def read_csv_table(path: str | Path, n_values: int | None, what: str) -> tuple[np.ndarray, np.ndarray]:
     """Read `wavelength, v1..vn` rows (a header line is allowed) and validate them.
+    `n_values` None: as many value columns as the first data row has (at least one).
 
     Errors (one line naming the file): missing, unparsable, wrong column count,
     non-finite, wavelengths not strictly increasing, negative values, data
@@ -75,12 +76,15 @@ def read_csv_table(path: str | Path, n_values: int, what: str) -> tuple[np.ndarr
             if not rows:  # a header line
                 continue
             raise InputError(p, f"line {ln}: not a number in '{s[:60]}'") from None
+        if n_values is None:
+            n_values = max(len(vals) - 1, 1)
         if len(vals) != n_values + 1:
             raise InputError(p, f"line {ln}: expected {n_values + 1} columns (wavelength + {n_values} "
                                 f"values), got {len(vals)}")
         rows.append(vals)
     if len(rows) < 2:
         raise InputError(p, f"{what} needs at least 2 rows of data, found {len(rows)}")
+    n_values = n_values or 1
     a = np.asarray(rows, dtype=np.float64)
     if not np.isfinite(a).all():
         raise InputError(p, f"{what} has NaN/inf values")
@@ -188,3 +192,70 @@ def validate_light_id(sid: str) -> str:
 def validate_camera_id(cid: str) -> str:
     _camera_values(cid)
     return cid
+
+
+# ------------------------------------------------------- narrow-band rigs (M channels)
+BAND_REACH = 2.0  # a Gaussian band must fit in the grid out to centre +- BAND_REACH x FWHM (~4.7 sigma)
+
+
+def band_problem(centre_nm: float, fwhm_nm: float) -> str | None:
+    """Why a Gaussian band (a filter or an LED) of this centre and FWHM cannot be rendered, or None.
+
+    Why +- 2 FWHM: beyond it a Gaussian holds < 1e-6 of its area, so cutting it at the renderer's
+    range changes nothing; a band reaching past 360 or 830 nm would lose part of itself unseen."""
+    c, w = float(centre_nm), float(fwhm_nm)
+    if not (np.isfinite(c) and np.isfinite(w)):
+        return f"centre and FWHM must be finite, got [{c:g}, {w:g}]"
+    if not 1.0 <= w <= 400.0:
+        return f"FWHM must be in [1, 400] nm, got {w:g}"
+    lo, hi = c - BAND_REACH * w, c + BAND_REACH * w
+    if lo < WL_MIN or hi > WL_MAX:
+        return (f"centre {c:g} nm +- {BAND_REACH:g} x FWHM {w:g} nm = [{lo:g}, {hi:g}] nm lies outside the "
+                f"renderer's spectral range {WL_MIN:g}-{WL_MAX:g} nm")
+    return None
+
+
+def gaussian_band(centre_nm: float, fwhm_nm: float) -> np.ndarray:
+    """Unit-peak Gaussian on GRID (a narrow-band filter's transmission, an LED's emission)."""
+    sigma = fwhm_nm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+    return np.exp(-0.5 * ((GRID - centre_nm) / sigma) ** 2)
+
+
+def filter_sensitivities(filters) -> np.ndarray:
+    """(len(GRID), M) sensitivities of a camera whose channel m is the Gaussian filter filters[m] =
+    (centre nm, FWHM nm), each with unit peak (a bare sensor behind ideal narrow-band filters)."""
+    out = np.stack([gaussian_band(c, w) for c, w in filters], axis=1)
+    out.setflags(write=False)
+    return out
+
+
+@lru_cache(maxsize=16)
+def _table_values(cid: str) -> np.ndarray:
+    if cid.lower().endswith(".csv") or "/" in cid:
+        wl, v = read_csv_table(cid, None, "camera sensitivity")
+        out = _to_grid(wl, np.asarray(v, np.float64).reshape(len(wl), -1))
+        out = out / out.max()
+        out.setflags(write=False)
+        return out
+    return _camera_values(cid)  # a colour-science camera: three channels
+
+
+def sensitivity_table(cid: str) -> np.ndarray:
+    """(len(GRID), M) max-normalised sensitivities of a camera id: a colour-science camera (M = 3) or a
+    CSV `wavelength, s1..sM` with any number of channels (measured filters, multispectral cameras)."""
+    return _table_values(cid).copy()
+
+
+def display_weights(S: np.ndarray) -> np.ndarray:
+    """(M, 3) weights that show M camera channels (sensitivities S, (len(GRID), M)) as linear sRGB:
+    row m is the colour of channel m's own sensitivity as the eye sees it (CIE 1931 2 deg, clipped to
+    the sRGB gamut, unit row sum); a channel the eye cannot see (infrared, ultraviolet) shows grey.
+    For previews only: the data are the M channels."""
+    import colour
+
+    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
+    xyz = _to_grid(np.asarray(cmfs.wavelengths, np.float64), np.asarray(cmfs.values, np.float64))
+    to_srgb = np.array([[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.2040, 1.0570]])
+    rgb = np.clip((np.asarray(S, np.float64).T @ xyz) @ to_srgb.T, 0.0, None)
+    s = rgb.sum(axis=1, keepdims=True)
+    return np.where(s > 1e-9 * max(float(s.max()), 1e-300), rgb / np.where(s > 0, s, 1.0), 1.0 / 3.0)
