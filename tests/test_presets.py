@@ -37,9 +37,9 @@ def test_paper_presets_match_the_paper():
 TEST_MESH_DIR = "$MSPS_TEST_DATA/meshes"
 UNSEEN = ("unseen-test", "unseen-test-grey", "unseen-robust-env", "unseen-robust-slant",
           "unseen-test-colour", "unseen-test-texture", "unseen-test-smooth", "unseen-test-patches",
-          "unseen-rig-crosstalk", "unseen-rig-jitter")
+          "unseen-rig-crosstalk", "unseen-rig-jitter", "diligent-rig")
 ANALYTIC_UNSEEN = ("unseen-test-colour", "unseen-test-texture", "unseen-test-smooth", "unseen-test-patches",
-                   "unseen-rig-crosstalk", "unseen-rig-jitter")
+                   "unseen-rig-crosstalk", "unseen-rig-jitter", "diligent-rig")
 
 
 @pytest.mark.parametrize("name", [p for p in PRESETS if p not in UNSEEN])

@@ -19,8 +19,9 @@ import pytest
 from scipy.ndimage import binary_erosion
 
 from msps_render.errors import InputError
-from msps_render.rig import (Rig, RigConfig, RigSpec, compose_shots, lambertian_shots, read_light_file,
-                             rig_of_spec, sample_rig, write_light_files)
+from msps_render.rig import (Rig, RigSpec, compose_shots, lambertian_shots, read_light_file, rig_of_spec,
+                             write_light_files)
+from msps_render.scene.rig_layouts import RigConfig, sample_rig
 from msps_render.scene.materials import lambertian
 from msps_render.scene.sample import SceneConfig, sample_scene
 from msps_render.scene.spec import CameraSpec, IntegratorSpec, SceneSpec, ShapeSpec
@@ -290,7 +291,7 @@ def test_file_layout_reads_intensities(tmp_path):
     ({"layout": "ring", "n_lights": 4, "capture": [[0, 1], [7]]}, "names light 7"),
     ({"layout": "ring", "n_lights": 2, "colours": [[1, 1, 1]]}, "1 entries for 2 lights"),
     ({"layout": "hemisphere", "slant_range_deg": [10, 95]}, "slant_range_deg"),
-    ({"layout": "file", "file": "/nonexistent/light_directions.txt"}, "not found"),
+    ({"layout": "file"}, "needs file"),
 ])
 def test_bad_rig_config_is_one_line(rig, why):
     from msps_render.config_io import validate
@@ -299,6 +300,14 @@ def test_bad_rig_config_is_one_line(rig, why):
         validate(SceneConfig, {"rig": rig}, "preset.toml")
     assert why in str(e.value)
     assert "\n" not in str(e.value)
+
+
+def test_missing_light_file_is_one_line_when_a_frame_is_drawn():
+    """A preset naming a light file (e.g. under $MSPS_TEST_DATA) validates without it, as mesh presets do;
+    drawing a frame names the file."""
+    cfg = RigConfig.model_validate({"layout": "file", "file": "/nonexistent/light_directions.txt"})
+    with pytest.raises(InputError, match="light_directions.txt.*not found"):
+        sample_rig(cfg, np.random.default_rng(0))
 
 
 def test_point_light_inside_bounding_sphere_is_refused():

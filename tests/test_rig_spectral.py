@@ -1,4 +1,4 @@
-"""Narrow-band rigs in spectral mode (msps_render.rig.spectral_rig): N Gaussian LEDs x an M-channel camera of
+"""Narrow-band rigs in spectral mode (msps_render.scene.rig_layouts.spectral_rig): N Gaussian LEDs x an M-channel camera of
 Gaussian filters, one shot (multiplexed) or one per LED (sequential).
 
 The closed form: an orthographic Lambertian sphere of grey albedo rho under directional LED n reads, in
@@ -38,7 +38,8 @@ import pytest
 from scipy.ndimage import binary_erosion
 
 from msps_render.errors import InputError
-from msps_render.rig import RigConfig, Rig, lambertian_shots, rig_of_spec, rig_sensitivities
+from msps_render.rig import Rig, lambertian_shots, rig_of_spec, rig_sensitivities
+from msps_render.scene.rig_layouts import RigConfig
 from msps_render.scene.materials import lambertian
 from msps_render.scene.sample import SceneConfig, sample_scene
 

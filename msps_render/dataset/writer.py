@@ -152,7 +152,7 @@ def write_shard(path: str | Path, content: ShardContent, compression: str = "lzf
         raise ValueError(f"compression must be one of {K.COMPRESSIONS}, got {compression!r}")
     path = Path(path)
     p, fr = content.patches, content.frames
-    P = p.image.shape[1] if len(p) else 0
+    P = p.normal.shape[1] if len(p) else 0  # (n, P, P, 3): format 2's image has a shot axis first
     arrays, strings = shard_arrays(content, image_dtype, normal_dtype)
     # The `core` driver builds the file in memory and writes it out once, at close: HDF5 writing chunk
     # by chunk to a full disk crashed the process (segmentation fault at its next flush); here a full

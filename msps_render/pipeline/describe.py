@@ -31,6 +31,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from msps_render.dataset.sizes import raw_patch_bytes, storage_bytes
+from msps_render.errors import InputError
 from msps_render.patches import patchify
 from msps_render.pipeline.config import DatasetConfig
 from msps_render.pipeline.config_toml import config_toml
@@ -280,7 +281,10 @@ def _rig_line(cfg: DatasetConfig) -> str | None:
     rig = cfg.scene.rig
     if rig is None:
         return None
-    _, shots, channels, near = rig.image_shape()
+    try:
+        _, shots, channels, near = rig.image_shape()
+    except InputError as e:  # a light file not here (e.g. $MSPS_TEST_DATA unset): the plan without it
+        return f"rig {rig.layout}: lights from {rig.file} ({e})"
     d = cfg.dataset
     one = raw_patch_bytes(d.patches.size, d.storage.image_dtype, d.storage.normal_dtype)
     mine = raw_patch_bytes(d.patches.size, d.storage.image_dtype, d.storage.normal_dtype, shots, channels, near)

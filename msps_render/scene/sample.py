@@ -20,7 +20,7 @@ from msps_render.errors import InputError
 from msps_render.scene.envmap import envmap_pixels, expand_path, irradiance_on_axis, missing_asset
 from msps_render.scene.families import expand_families, sample_family_params
 from msps_render.scene.geometry import sample_blobby_coeffs
-from msps_render.rig import RigConfig, sample_rig, spectral_rig
+from msps_render.scene.rig_layouts import RigConfig, sample_rig, spectral_rig
 from msps_render.scene.lights import PAPER_CROSSTALK, random_crosstalk, three_lights
 from msps_render.scene.materials import sample_analytic, sample_materials
 from msps_render.scene.primitives import PRIMITIVES, sample_primitive_params, unknown_primitive
