@@ -147,3 +147,28 @@ def test_the_defaults_are_the_validated_chains_and_skip_nothing_silently():
     assert str(predict_method("lambertian").steps) == "none" and str(predict_method().steps) == "selfcal+netcal"
     with pytest.raises(InputError, match="refine"):
         methods([lam], [Steps.parse("selfcal+refine")])
+
+
+# ------------------------------------------------------------------ the registry's hooks (issue 43 item 5)
+@pytest.mark.parametrize("name", list(STEPS))
+def test_every_registered_step_has_its_stage_hooks(name):
+    """Each step carries what its stage's patch path calls: predictor -> batch, normals -> frame + patches."""
+    st = STEPS[name]
+    if st.stage == "predictor":
+        assert callable(st.batch)
+    if st.stage == "normals":
+        assert callable(st.frame) and callable(st.patches)
+
+
+def test_a_normals_step_without_hooks_is_refused_at_registration():
+    from msps_render.models.steps import Step
+
+    with pytest.raises(ValueError, match="needs the hook"):
+        Step("bad", "normals", lambda s: s, "", lambda f: {}, lambda f: "")
+    with pytest.raises(ValueError, match="needs the hook"):
+        Step("bad", "predictor", lambda s: s, "", lambda f: {}, lambda f: "", whole_image=False)
+
+
+def test_duplicate_steps_are_an_error():
+    with pytest.raises(InputError, match="given twice"):
+        Steps.parse("selfcal+selfcal")

@@ -122,15 +122,19 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out, "report")
+    columns = _steps(steps, True, DEFAULT_RENDERED, selfcal=selfcal, segments=segments, netcal=netcal,
+                     mirror=mirror, refine=refine)
     if is_rig_dataset(data):  # any rig (format-2 shards): methods that read the rig itself
+        from msps_render.errors import InputError
         from msps_render.models import rig_eval
 
+        if steps or any((selfcal, segments, netcal, mirror, refine)):
+            raise InputError("--steps", f"{data} is a rig dataset: the test-time steps belong to the three-light "
+                                        "dual-cue network")
         r = rig_eval.evaluate_rig(data, out, rig_eval.resolve_rig_methods(method, checkpoint), progress=not quiet)
         typer.echo("\n".join(rig_eval.summary_lines(r)))
         typer.echo("wrote " + ", ".join(r["files"]))
         return
-    columns = _steps(steps, True, DEFAULT_RENDERED, selfcal=selfcal, segments=segments, netcal=netcal,
-                     mirror=mirror, refine=refine)
     r = evaluate(data, out, resolve_methods(checkpoint, method, columns), max_patches=max_patches,
                  progress=not quiet)
     for line in summary_lines(r):

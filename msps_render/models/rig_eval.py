@@ -93,6 +93,8 @@ def is_rig_dataset(data: str | Path) -> bool:
     from msps_render.dataset import load_manifest
     from msps_render.dataset.reader import format_version, open_shard, shard_errors
 
+    if not (Path(data) / "dataset.json").is_file():
+        return False  # not a dataset: the three-light path says what is wrong with it
     man = load_manifest(Path(data), need_complete=False)
     for e in man.shards_of():
         p = man.shard_path(e.name)

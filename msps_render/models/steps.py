@@ -118,6 +118,20 @@ class Step:
     frame: Callable[[State], object] | None = None  # `normals` stage: what patches take from their frame's run
     patches: Callable | None = None  # `normals` stage: (images, normals, masks, rigs, frame values) -> normals
 
+    def __post_init__(self) -> None:
+        """The hooks each stage's patch path calls, checked when the step is registered (a `normals` step
+        without `frame`/`patches` used to crash `msps eval` with "'NoneType' object is not callable")."""
+        if self.stage not in STAGES:
+            raise ValueError(f"step '{self.name}': stage must be one of {', '.join(STAGES)}, got '{self.stage}'")
+        need = {"predictor": ("batch",), "normals": ("frame", "patches")}.get(self.stage, ())
+        missing = [h for h in need if getattr(self, h) is None]
+        if missing:
+            raise ValueError(f"step '{self.name}' ({self.stage} stage) needs the hook(s) {', '.join(missing)}: "
+                             "patches are scored through them (models/evaluate.py)")
+        if self.stage in ("image", "predict") and not self.whole_image:
+            raise ValueError(f"step '{self.name}' ({self.stage} stage) must fit the whole image: its patches "
+                             "take the frame's colour factor")
+
 
 STEPS: dict[str, Step] = {s.name: s for s in (
     Step("selfcal", "image", _selfcal, selfcal.DESCRIPTION,
@@ -188,6 +202,9 @@ class Steps:
         if not t or not all(parts):
             raise InputError(source, f"'{text}': expected step names joined by '+' "
                                      f"(e.g. selfcal+netcal+refine) or {NONE}")
+        dup = sorted({p for p in parts if parts.count(p) > 1})
+        if dup:
+            raise InputError(f"{source} {t}", f"step '{dup[0]}' given twice")
         return cls.of(parts, source=f"{source} {t}")
 
     def __str__(self) -> str:
