@@ -7,6 +7,8 @@ library callers and tests pass `progress=False` and see nothing.
 """
 from __future__ import annotations
 
+import os
+
 
 class Task:
     """One stage's line: `advance(n)` as units finish; `describe(text)` when the stage's work changes."""
@@ -24,15 +26,44 @@ class Task:
         self._p.update(self._id, completed=completed, **({} if total is None else {"total": total}))
 
 
+class _PlainTask:
+    """A `Task` that writes plain lines (`LineTicker`) instead of redrawing a bar: output to a file."""
+
+    def __init__(self, description: str, total: int | None):
+        self.n = 0
+        self.t = LineTicker(description, total, unit="item")
+
+    def advance(self, n: int = 1) -> None:
+        self.n += n
+        self.t.update(self.n)
+
+    def describe(self, text: str) -> None:
+        self.t.note(text)
+
+    def set(self, completed: int, total: int | None = None) -> None:
+        if total is not None:
+            self.t.total = total
+        self.n = completed
+        self.t.update(completed)
+
+    def close(self) -> None:
+        self.t.close()
+
+
 class Bar:
-    """A context manager holding the command's progress lines; `task(...)` is None when disabled."""
+    """A context manager holding the command's progress lines; `task(...)` is None when disabled.
+    On a terminal: rich bars; when stderr is a file (nohup, Slurm, CI): plain lines every
+    `LINE_EVERY_S` seconds and one when each stage ends (`LineTicker`)."""
 
     def __init__(self, enabled: bool = True):
+        import sys
+
         self.enabled = enabled
         self._p = None
+        self._plain: list[_PlainTask] | None = [] if enabled and not sys.stderr.isatty() else None
 
     def __enter__(self) -> "Bar":
-        if self.enabled:
+        if self.enabled and self._plain is None:
             from rich.console import Console
             from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                        TimeRemainingColumn)
@@ -47,14 +78,21 @@ class Bar:
         if self._p is not None:
             self._p.stop()
             self._p = None
+        for t in self._plain or ():
+            t.close()
 
     def task(self, description: str, total: int | None) -> Task | None:
+        if self._plain is not None:
+            if self._plain:  # the previous stage is over: its last line
+                self._plain[-1].close()
+            self._plain.append(_PlainTask(description, total))
+            return self._plain[-1]
         if self._p is None:
             return None
         return Task(self._p, self._p.add_task(description, total=total))
 
 
-LINE_EVERY_S = 15.0  # a plain progress line at least this often when output goes to a file
+LINE_EVERY_S = float(os.environ.get("MSPS_PROGRESS_EVERY", "15"))  # plain lines at least this often (s) in a log
 
 
 def _duration(s: float) -> str:
@@ -68,11 +106,12 @@ class LineTicker:
     the run moving, not only its end."""
 
     def __init__(self, name: str, total: int | None, enabled: bool = True, unit: str = "it", start: int = 0,
-                 every_s: float = LINE_EVERY_S, stream=None):
+                 every_s: float = LINE_EVERY_S, stream=None, budget_s: float | None = None):
         import sys
         import time
 
         self.name, self.total, self.unit, self.every_s = name, total, unit, every_s
+        self.budget_s = budget_s  # a time budget that may end the loop before `total`
         self.enabled, self._time = enabled, time.perf_counter
         self.stream = stream or sys.stderr
         self.n = self.n0 = start
@@ -88,7 +127,10 @@ class LineTicker:
         dt = self._time() - self.t0
         rate = (self.n - self.n0) / dt if dt > 0 else 0.0
         of = f"/{self.total}" if self.total else ""
-        eta = f", ETA {_duration((self.total - self.n) / rate)}" if self.total and rate > 0 else ""
+        left = (self.total - self.n) / rate if self.total and rate > 0 else None
+        if self.budget_s is not None:
+            left = max(0.0, self.budget_s - dt) if left is None else min(left, max(0.0, self.budget_s - dt))
+        eta = f", ETA {_duration(left)}" if left is not None else ""
         return (f"{self.name}: {self.n}{of} {self.unit}s, {rate:.2f} {self.unit}/s, elapsed {_duration(dt)}{eta}"
                 + (f"; {self._note}" if self._note else ""))
 

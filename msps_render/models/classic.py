@@ -307,7 +307,8 @@ def train_classic(cfg: ClassicConfig, data, val, out, resume: bool = False, prog
                                              "state": {k: v for k, v in st.__dict__.items() if k != "history"},
                                              "data_hash": dhash, "n_params": n_params, "val_mae_deg": v})
 
-    ticker = LineTicker("train", planned, enabled=progress, unit="step", start=st.step)
+    ticker = LineTicker("train", planned, enabled=progress, unit="step", start=st.step,
+                        budget_s=budget - st.elapsed if budget < float("inf") else None)
     done = st.step >= t.max_steps
     losses, window_t, window_n, last_val = [], time.perf_counter(), 0, time.perf_counter()
     val_s = 0.0

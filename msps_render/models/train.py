@@ -359,7 +359,7 @@ def fit(run: Run, loader, val_loader, log, bar, accel: Accel = CPU) -> None:
             window_n += len(b["image"])
             run_loss.append(loss.detach())
             if bar:
-                bar.update(1)
+                bar.update(state["step"])
             stop = run.should_stop()
             if stop or cadence.due(state["step"], time.perf_counter()):
                 t0 = time.perf_counter()
@@ -368,8 +368,9 @@ def fit(run: Run, loader, val_loader, log, bar, accel: Accel = CPU) -> None:
                 cadence.done(t0, time.perf_counter(), state["step"])
                 run.val_seconds += cadence.val_s
                 if bar:
-                    bar.set_postfix(loss=f"{float(torch.stack(run_loss[-50:]).mean()) if run_loss else 0:.4f}",
-                                    val=f"{v:.2f}deg", best=f"{state['best_val']:.2f}deg", epoch=state["epoch"])
+                    loss_now = float(torch.stack(run_loss[-50:]).mean()) if run_loss else 0.0
+                    bar.note(f"loss {loss_now:.4f}, val {v:.2f} deg, best {state['best_val']:.2f} deg, epoch "
+                             f"{state['epoch']}, {window_n / max(t0 - window_t, 1e-9):.0f} patches/s")
                 window_t, window_n, run_loss = time.perf_counter(), 0, []
             if stop:
                 done = True
@@ -408,11 +409,12 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
         run.t_start = time.perf_counter() - run.state["elapsed"]
         run.budget = t_cfg.max_minutes * 60 if t_cfg.max_minutes else float("inf")
         bar = None
-        if progress:
-            from tqdm import tqdm
+        if progress:  # a bar on a terminal, plain lines every 15 s in a log file (`LineTicker`)
+            from msps_render.progress import LineTicker
 
             planned = min(t_cfg.max_steps, t_cfg.epochs * max(len(loader), 1))  # a time budget may end it sooner
-            bar = tqdm(total=planned, initial=run.state["step"], unit="step", dynamic_ncols=True)
+            bar = LineTicker("train", planned, unit="step", start=run.state["step"],
+                             budget_s=run.budget - run.state["elapsed"] if run.budget < float("inf") else None)
         try:
             fit(run, loader, val_loader, log, bar, accel)
             run.checkpoint("last.pt")

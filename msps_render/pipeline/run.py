@@ -7,6 +7,7 @@ import json
 import os
 import signal
 import threading
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -401,8 +402,12 @@ class _Progress:
         self.total, self.done, self.patches, self.enabled = total, done, patches, enabled
         self.t0 = time.perf_counter()
         self.new_patches = 0
-        self._p = None
-        if enabled:
+        self._p = self._lines = None
+        if enabled and not sys.stderr.isatty():  # a log file: plain lines at a steady cadence
+            from msps_render.progress import LineTicker
+
+            self._lines = LineTicker("render", total, unit="shard", start=done)
+        elif enabled:
             from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
             self._p = Progress(TextColumn("shards {task.completed}/{task.total}"), BarColumn(),
@@ -415,11 +420,17 @@ class _Progress:
         self.done += 1
         self.patches += n_patches
         self.new_patches += n_patches
+        rate = self.new_patches / max(time.perf_counter() - self.t0, 1e-9)
         if self._p:
-            rate = self.new_patches / max(time.perf_counter() - self.t0, 1e-9)
             self._p.update(self._id, completed=self.done, patches=self.patches, rate=rate)
+        if self._lines:
+            self._lines.note(f"{self.patches} patches, {rate:.0f} patches/s")
+            self._lines.update(self.done)
 
     def close(self) -> None:
+        if self._lines:
+            self._lines.close()
+            self._lines = None
         if self._p:
             self._p.stop()
             self._p = None
