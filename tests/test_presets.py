@@ -39,7 +39,7 @@ UNSEEN = ("unseen-test", "unseen-test-grey", "unseen-robust-env", "unseen-robust
           "unseen-test-colour", "unseen-test-texture", "unseen-test-smooth", "unseen-test-patches",
           "unseen-rig-crosstalk", "unseen-rig-jitter", "diligent-rig")
 ANALYTIC_UNSEEN = ("unseen-test-colour", "unseen-test-texture", "unseen-test-smooth", "unseen-test-patches",
-                   "unseen-rig-crosstalk", "unseen-rig-jitter", "diligent-rig")
+                   "unseen-rig-crosstalk", "unseen-rig-jitter")
 
 
 @pytest.mark.parametrize("name", [p for p in PRESETS if p not in UNSEEN])
