@@ -74,16 +74,19 @@ class Bar:
             self._p.start()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, exc_type, *exc) -> None:
         if self._p is not None:
             self._p.stop()
             self._p = None
         for t in self._plain or ():
-            t.close()
+            if exc_type is None:  # a failing command ends on its one error line, not on a progress line
+                t.close()
+            else:
+                t.t.enabled = False
 
     def task(self, description: str, total: int | None) -> Task | None:
         if self._plain is not None:
-            if self._plain:  # the previous stage is over: its last line
+            if self._plain and self._plain[-1].t.enabled:  # the previous stage is over: its last line
                 self._plain[-1].close()
             self._plain.append(_PlainTask(description, total))
             return self._plain[-1]
