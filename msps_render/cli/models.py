@@ -8,10 +8,10 @@ from typing import List, Optional
 import typer
 
 from msps_render.cli.app import app, clean_errors
-from msps_render.io.png16 import PNG_RULE
+from msps_render.io.png16 import PNG_OVERRIDES, PNG_RULE
 from msps_render.models.steps import DEFAULT_PHOTOS, DEFAULT_RENDERED
 
-PNG_HELP = f"force PNG values to be read as linear radiance / as sRGB-encoded. Default: {PNG_RULE}"
+PNG_HELP = f"force PNG values to be read as linear radiance / as sRGB-encoded. Default: {PNG_RULE}{PNG_OVERRIDES}"
 
 # Test-time steps (models/steps.py): `--steps selfcal+netcal+refine` (or `none`); repeatable where it adds
 # comparison columns (eval, bench-real).  The old per-step flags stay, hidden, for one release: they are
@@ -45,6 +45,11 @@ def _steps(given: list[str], columns: bool, default, **old: bool) -> list:
     aliased = from_flags(columns, **old)
     if aliased and given:
         raise InputError("--steps", "give --steps or the old step flags (--selfcal ...), not both")
+    if aliased:  # one line naming the equivalent, so scripts move before the flags go
+        flags = " ".join(f"--{k}" for k, on in old.items() if on)
+        same = " ".join(f"--steps {s}" for s in aliased)
+        typer.echo(f"warning: {flags} {'is' if len(flags.split()) == 1 else 'are'} deprecated and will be "
+                   f"removed; the same: {same}", err=True)
     return aliased or [Steps.parse(g) for g in given] or [default]
 
 
@@ -203,7 +208,7 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
                    skip: List[str] = typer.Option([], help="leave out a capture before the nearest three are "
                                                   "chosen: FILE (e.g. 001.png, in every folder) or "
                                                   "OBJECT/FILE (one folder); repeatable"),
-                   srgb: bool = typer.Option(False, "--srgb", help=f"PNG photos are sRGB-encoded. Default: {PNG_RULE}"),
+                   srgb: bool = typer.Option(False, "--srgb", help=f"PNG photos are sRGB-encoded. Default: {PNG_RULE}; --srgb overrides"),
                    threads: Optional[int] = typer.Option(None, help="torch CPU threads"),
                    steps: List[str] = _steps_option(True, DEFAULT_PHOTOS),
                    quiet: bool = typer.Option(False, help="no progress lines"),

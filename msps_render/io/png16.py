@@ -24,7 +24,8 @@ PNG_RULE = ("PNG values are decoded as the file says: a gAMA 1.0 chunk (msps's o
             "iCCP chunk or another gamma means sRGB; an untagged photo of a capture folder with "
             "light_intensities.txt (DiLiGenT layout: radiometric, so linear) is linear at any bit depth; any other "
             "untagged 16-bit PNG is taken as linear (raw captures), an untagged 8-bit one as sRGB, each with a "
-            "warning; --linear / --srgb override")
+            "warning")
+PNG_OVERRIDES = "; --linear / --srgb override"  # the commands that have both flags (predict, compose)
 
 
 def _chunk(kind: bytes, data: bytes) -> bytes:

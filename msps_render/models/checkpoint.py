@@ -34,6 +34,21 @@ def save_dict(path: str | Path, ck: dict) -> Path:
     return write_bytes(path, buf.getbuffer())
 
 
+def not_torch_reason(p: Path) -> str | None:
+    """Why a file is not a `torch.save` archive, in words (None: it looks like one, the error is deeper)."""
+    head = p.read_bytes()[:512]
+    if head.startswith(b"PK\x03\x04") or head[:1] == b"\x80":  # zip archive (torch >= 1.6) / legacy pickle
+        return None
+    if not head:
+        return "an empty file, not a checkpoint"
+    try:
+        head.decode("utf-8")
+        kind = "a text file"
+    except UnicodeDecodeError:
+        kind = "a binary file"
+    return f"{kind} of {p.stat().st_size} bytes, not a checkpoint (a torch.save archive, e.g. a run's best.pt)"
+
+
 def load_checkpoint(path: str | Path, expect_preset: str | None = None, map_location: str = "cpu"):
     """(model in eval mode, ModelConfig, checkpoint dict). Clear errors for foreign files."""
     p = Path(path)
@@ -42,7 +57,7 @@ def load_checkpoint(path: str | Path, expect_preset: str | None = None, map_loca
     try:
         ck = torch.load(p, map_location=map_location, weights_only=True)
     except Exception as e:
-        raise InputError(p, f"not a loadable checkpoint ({brief(str(e), 100)})") from None
+        raise InputError(p, not_torch_reason(p) or f"not a loadable checkpoint ({brief(str(e), 100)})") from None
     if not isinstance(ck, dict) or ck.get("format") != FORMAT:
         raise InputError(p, "not an msps dual-cue checkpoint")
     cfg = ModelConfig.model_validate(ck["config"])

@@ -222,7 +222,9 @@ def load(path: str | Path) -> tuple[ClassicNet, ClassicConfig, dict]:
     try:
         ck = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as e:
-        raise InputError(p, f"not a loadable checkpoint ({brief(str(e), 100)})") from None
+        from msps_render.models.checkpoint import not_torch_reason
+
+        raise InputError(p, not_torch_reason(p) or f"not a loadable checkpoint ({brief(str(e), 100)})") from None
     if not isinstance(ck, dict) or ck.get("format") != FORMAT:
         raise InputError(p, "not an msps classic-network checkpoint (the dual-cue network's checkpoints "
                             "read one three-light image: use them on three-light data)")

@@ -292,14 +292,14 @@ def evaluate(data: str | Path, out: str | Path, methods: list[Method] | None = N
     data, out = Path(data), Path(out)
     man = load_manifest(data, need_complete=False)
     conditions = [c.name for c in man.conditions]
-    methods = _defaults_without_frames(methods, data, conditions)
+    sets = {c: PatchDataset(data, condition=c, verify=verify) for c in conditions}  # every check before any work
+    methods = _defaults_without_frames(methods, data, conditions)  # (its warning after the data checked out)
     names = [m.name for m in methods]
     if len(set(names)) != len(names):
         raise InputError("--checkpoint", f"method names must differ: {', '.join(names)}")
     why = _whole_frame_step(methods)
     per = {n: {"conditions": {}} for n in names}
     units: dict = {}  # condition -> patches: (unit keys, (M, U) error sums, (U,) pixels); frames: rows
-    sets = {c: PatchDataset(data, condition=c, verify=verify) for c in conditions}  # every check before any work
     stored = {c: _has_frames(data, c, why) for c in conditions}
     with Bar(progress) as bar:
         for cond in conditions:

@@ -314,8 +314,8 @@ def summary_lines(report: dict) -> list[str]:
     """The lines `msps eval` prints: one method as before (statistics and per-object table); several:
     the comparison table."""
     if len(report["methods"]) > 1:
-        return _compare_lines(report)
-    lines = []
+        return [_what_ran(report)] + _compare_lines(report)
+    lines = [_what_ran(report)]
     for cond, v in report["conditions"].items():
         p = v["patches"]
         name = cond or "all"
@@ -342,6 +342,15 @@ def summary_lines(report: dict) -> list[str]:
         lines.append(f"robustness (reference {rb['reference']}): " + ", ".join(
             f"{c}: {m:.2f} deg, alpha {rb['alpha'][c]:.3f}" for c, m in rb["mae_deg"].items()))
     return lines
+
+
+def _what_ran(report: dict) -> str:
+    """The summary's first line: which methods with which steps, on which data (issue 44)."""
+    parts = []
+    for name, m in report["methods"].items():
+        ck = m.get("checkpoint")
+        parts.append(f"{name} = {m.get('kind', 'method')}{f' ({ck})' if ck else ''}, steps {m.get('steps', 'none')}")
+    return f"{report.get('dataset', '')} ({report.get('data', '')}): " + "; ".join(parts)
 
 
 def _compare_lines(report: dict) -> list[str]:

@@ -167,6 +167,7 @@ class Steps:
 
     names: tuple[str, ...] = ()
     alias: bool = field(default=False, compare=False)
+    given: str = field(default="", compare=False)  # the --steps text as the user wrote it (messages quote it)
     default: bool = field(default=False, compare=False)  # a context's default, not asked for: a predictor
     # it does not fit (the baseline under a network-only step) runs without steps instead of refusing
 
@@ -205,7 +206,7 @@ class Steps:
         dup = sorted({p for p in parts if parts.count(p) > 1})
         if dup:
             raise InputError(f"{source} {t}", f"step '{dup[0]}' given twice")
-        return cls.of(parts, source=f"{source} {t}")
+        return replace(cls.of(parts, source=f"{source} {t}"), given=t)
 
     def __str__(self) -> str:
         return "+".join(self.names) or NONE
@@ -220,7 +221,7 @@ class Steps:
 
     def where(self, name: str) -> str:
         """How the user named step `name`: the old flag, or the --steps value."""
-        return f"--{name}" if self.alias else f"--steps {self}"
+        return f"--{name}" if self.alias else f"--steps {self.given or self}"
 
     def stage(self, stage: str) -> list[Step]:
         return [STEPS[n] for n in self.names if STEPS[n].stage == stage]
@@ -228,7 +229,7 @@ class Steps:
     def before(self, stage: str) -> "Steps":
         """The steps of the stages before `stage`: what that stage's input depends on."""
         keep = STAGES[:STAGES.index(stage)]
-        return Steps(tuple(n for n in self.names if STEPS[n].stage in keep), self.alias)
+        return Steps(tuple(n for n in self.names if STEPS[n].stage in keep), self.alias, self.given)
 
     @property
     def whole_image(self) -> list[str]:
