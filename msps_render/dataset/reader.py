@@ -23,6 +23,10 @@ def shard_errors(path: str | Path):
     try:
         yield
     except (OSError, KeyError) as e:
+        if "filter" in str(e).lower():  # zstd / Blosc2 chunks without the hdf5plugin filters loaded
+            raise InputError(path, f"cannot decode the shard's compressed arrays ({brief(str(e))}): shards are "
+                                   "zstd-compressed by default; `pip install hdf5plugin` (msps's readers import it; "
+                                   "a plain h5py script needs `import hdf5plugin` first)") from None
         raise InputError(path, f"unreadable shard ({brief(str(e))}); run `msps verify` on the dataset "
                                "and re-render bad shards with `msps render ... --resume`") from None
 
