@@ -5,6 +5,13 @@ upscaled, aspect kept) over a label band naming the shard and frame (and the pat
 for patch samples), the shape kind and name, the materials and the sweep condition.
 The sheet is drawn with Pillow (the histograms with matplotlib) and saved without
 metadata, so the same dataset gives the same PNG bytes.
+
+Rig datasets (format-2 shards, docs/rigs.md): a sample has S images of M channels, so its
+cell shows up to three of its shots (first, middle, last; one multiplexed shot of more than
+three channels: its first, middle and last channel) at one common exposure, each captioned,
+then the normal map and the mask; the label band adds the rig (`Rig.describe` of the
+nominal rig).  An RGB rig's channels are shown through their weights on R, G, B, a spectral
+rig's through the colour of each channel's sensitivity (`spectral.display_weights`).
 """
 from __future__ import annotations
 
@@ -17,7 +24,7 @@ from PIL import Image, ImageDraw, ImageFont
 from msps_render.atomic import atomic_write
 from msps_render.dataset import SHARD_DIR, read_frame_table, read_manifest
 from msps_render.dataset.samples import Sample, shard_samples
-from msps_render.preview import normal_to_rgb8, tonemap
+from msps_render.preview import normal_to_rgb8, srgb8, tonemap
 
 PAD = 8  # around cells
 GAP = 4  # between the tiles of a cell
@@ -36,6 +43,8 @@ class Layout:
     n: int
     tile: int
     cols: int
+    tiles: int = 3  # tiles per cell: image (rig datasets: up to three shots), normal map, mask
+    lines: int = LABEL_LINES  # label lines per cell
 
     @property
     def rows(self) -> int:
@@ -43,11 +52,15 @@ class Layout:
 
     @property
     def cell_w(self) -> int:
-        return 3 * self.tile + 2 * GAP
+        return self.tiles * self.tile + (self.tiles - 1) * GAP
+
+    @property
+    def label_h(self) -> int:
+        return self.lines * LINE + 6
 
     @property
     def cell_h(self) -> int:
-        return self.tile + LABEL_H
+        return self.tile + self.label_h
 
     @property
     def width(self) -> int:
@@ -63,7 +76,8 @@ class Layout:
         return PAD + c * (self.cell_w + PAD), HEADER + r * (self.cell_h + PAD)
 
     def tile_box(self, k: int, j: int) -> tuple[int, int, int, int]:
-        """(x0, y0, x1, y1) of tile j (0 image, 1 normal, 2 mask) of cell k."""
+        """(x0, y0, x1, y1) of tile j (0 image, 1 normal, 2 mask; rig datasets: the shots, then normal
+        and mask) of cell k."""
         x, y = self.cell(k)
         x += j * (self.tile + GAP)
         return x, y, x + self.tile, y + self.tile
@@ -73,8 +87,8 @@ class Layout:
         return x, y + self.tile, x + self.cell_w, y + self.cell_h
 
 
-def layout(n_samples: int, tile: int = 160, cols: int = 2) -> Layout:
-    return Layout(n=n_samples, tile=tile, cols=max(1, min(cols, n_samples or 1)))
+def layout(n_samples: int, tile: int = 160, cols: int = 2, tiles: int = 3, lines: int = LABEL_LINES) -> Layout:
+    return Layout(n=n_samples, tile=tile, cols=max(1, min(cols, n_samples or 1)), tiles=tiles, lines=lines)
 
 
 def _font(size: int = FONT_SIZE):
@@ -107,7 +121,7 @@ def _tile(pic: np.ndarray, tile: int):
     return im.resize((max(1, round(w * s)), max(1, round(h * s))), Image.NEAREST)
 
 
-def _plots(width: int, slants, mats, cover) -> np.ndarray:
+def _plots(width: int, slants, mats, cover, slant_title: str | None = None) -> np.ndarray:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -117,7 +131,7 @@ def _plots(width: int, slants, mats, cover) -> np.ndarray:
     fig = plt.figure(figsize=(width / dpi, PLOTS_H / dpi), dpi=dpi)
     axs = fig.subplots(1, 3)
     axs[0].hist(slants, bins=20, color="C0")
-    axs[0].set_title("slant (deg) per frame", fontsize=9)
+    axs[0].set_title(slant_title or "slant (deg) per frame", fontsize=9)
     u, c = np.unique(mats, return_counts=True) if mats else ([], [])
     axs[1].barh(list(u)[:15], list(c)[:15], color="C1")
     axs[1].set_title("materials", fontsize=9)
@@ -144,6 +158,117 @@ def sample_quota(names: list[str], condition_of: dict[str, str], n: int) -> dict
     return {name: n // S + (1 if i < n % S else 0) for i, name in enumerate(order)}
 
 
+# ------------------------------------------------------------------ rig datasets (format 2)
+@dataclass
+class RigSample:
+    """A sample of a rig shard: the labelled sample (its `image` the first view, for eyes only) and the
+    views the cell shows, each (caption, H x W x 3 linear display radiance)."""
+
+    sample: Sample
+    views: list[tuple[str, np.ndarray]]
+    rig: str  # `Rig.describe()` of the nominal rig
+
+
+def pick(count: int, k: int = 3) -> list[int]:
+    """Up to `k` indices of range(count): first, middle, last (each once)."""
+    return sorted({0, count // 2, count - 1})[:k] if count > 0 else []
+
+
+def display_weights_of(rig_json: str) -> np.ndarray:
+    """(M, 3) weights that show a rig's M camera channels as linear RGB: an RGB rig's channel rows on
+    R, G, B (unit sum: mono is grey), a spectral rig's channel colours (`spectral.display_weights`)."""
+    from msps_render.rig import RigSpec, rig_sensitivities
+
+    spec = RigSpec.model_validate_json(rig_json)
+    if spec.is_spectral:
+        from msps_render.spectral.spectra import display_weights
+
+        return np.asarray(display_weights(rig_sensitivities(spec)), np.float64)
+    w = np.asarray(spec.channels, np.float64)
+    return w / np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
+
+
+def rig_views(shots: np.ndarray, rig, weights: np.ndarray, names) -> list[tuple[str, np.ndarray]]:
+    """The views of one sample's shots (S, H, W, M): shots first/middle/last in colour, captioned with
+    their lights; one shot of more than three channels: its first/middle/last channel, grey."""
+    shots = np.asarray(shots, np.float32)
+    S, M = shots.shape[0], shots.shape[-1]
+    shot_list = rig.shot_list
+    if S == 1 and M > 3:
+        return [(f"channel {names[m] if m < len(names) else m}", np.repeat(shots[0, ..., m:m + 1], 3, axis=-1))
+                for m in pick(M)]
+    out = []
+    for s in pick(S):
+        lights = shot_list[s] if s < len(shot_list) else ()
+        which = (f"light {lights[0]}" if len(lights) == 1 else f"{len(lights)} lights") if lights else ""
+        out.append((f"shot {s}" + (f": {which}" if which and S > 1 else ""),
+                    (shots[s].astype(np.float64) @ weights).astype(np.float32)))
+    return out
+
+
+def rig_shard_samples(path: str | Path, n: int, rng: np.random.Generator) -> tuple[list[RigSample], list[float]]:
+    """Up to `n` samples of a format-2 shard (its first whole frames if stored, else `n` random patches
+    in shard order) and the mask coverage of every patch of the shard (as `shard_samples`)."""
+    from msps_render.dataset import schema as K
+    from msps_render.dataset.reader import open_shard, read_rigs, shard_errors
+    from msps_render.dataset.samples import _shape_kind
+
+    path = Path(path)
+    with shard_errors(path), open_shard(path) as h:
+        msk = h[K.PATCH_MASK][()]
+        N = len(msk)
+        cover = msk.reshape(N, -1).mean(1).tolist() if N else []
+        if n <= 0:
+            return [], cover
+        objs = h[K.FRAME_OBJECT].asstr()[()]
+        mats = h[K.FRAME_MATERIALS].asstr()[()]
+        conds = h[K.FRAME_CONDITION].asstr()[()]
+        scenes = h[K.FRAME_SCENE_JSON].asstr()[()]
+        rjs = h[K.FRAME_RIG_JSON].asstr()[()]
+        _, nominal = read_rigs(h)
+        cache: dict[str, np.ndarray] = {}
+
+        def sample(shots, normal, mask, f, yx) -> RigSample:
+            import json
+
+            rj = str(rjs[f])
+            if rj not in cache:
+                cache[rj] = display_weights_of(rj)
+            names = json.loads(rj).get("channel_names", ())
+            mask = np.asarray(mask, bool)
+            views = rig_views(shots, nominal[f], cache[rj], names)
+            smp = Sample(views[0][1], np.asarray(normal, np.float32), mask, path.name, int(f), yx,
+                         _shape_kind(scenes[f]), str(objs[f]), [m for m in str(mats[f]).split(";") if m],
+                         str(conds[f]))
+            return RigSample(smp, views, nominal[f].describe())
+
+        out = []
+        if K.FRAME_SHOTS in h:
+            for i in range(min(len(h[K.FRAME_SHOTS]), n)):
+                out.append(sample(h[K.FRAME_SHOTS][i], h[K.FRAME_NORMAL][i], h[K.FRAME_MASK][i], i, None))
+        elif N:
+            fidx = h[K.PATCH_FRAME_INDEX][()]
+            yx = h[K.PATCH_YX][()]
+            for i in sorted(rng.choice(N, size=min(N, n), replace=False)):
+                out.append(sample(h[K.PATCH_IMAGE][i], h[K.PATCH_NORMAL][i], msk[i], fidx[i],
+                                  (int(yx[i][0]), int(yx[i][1]))))
+        return out, cover
+
+
+def _is_rig_shard(path: Path) -> bool:
+    from msps_render.dataset.reader import is_rig_shard, open_shard, shard_errors
+
+    with shard_errors(path), open_shard(path) as h:
+        return is_rig_shard(h)
+
+
+def _caption(draw, box, text: str, font) -> None:
+    """`text` in white on a black band at the top of a tile."""
+    x0, y0, x1, _ = box
+    draw.rectangle((x0, y0, x1 - 1, y0 + LINE + 1), fill=(0, 0, 0))
+    draw.text((x0 + 3, y0 + 2), _fit(text, font, x1 - x0 - 6), fill=(255, 255, 255), font=font)
+
+
 def preview_dataset(root: str | Path, out: str | Path, n: int = 8, seed: int = 0, tile: int = 160,
                     cols: int = 2, labels: bool = True) -> Path:
     """Write the contact sheet of dataset `root` to `out` (PNG); returns `out`."""
@@ -151,7 +276,7 @@ def preview_dataset(root: str | Path, out: str | Path, n: int = 8, seed: int = 0
     m = read_manifest(root)
     names = sorted(m["shards"]) if m else sorted(p.name for p in (root / SHARD_DIR).glob("shard-*.h5"))
     rng = np.random.default_rng(seed)
-    samples: list[Sample] = []
+    samples: list[Sample | RigSample] = []
     slants, mats, cover, objects, conds = [], [], [], [], []
     quota = sample_quota(names, {k: e.get("condition", "") for k, e in (m or {}).get("shards", {}).items()}, n)
     n = sum(quota.values())
@@ -164,33 +289,53 @@ def preview_dataset(root: str | Path, out: str | Path, n: int = 8, seed: int = 0
         objects.extend(table["object"])
         conds.extend(table["condition"])
         want = min(quota[name] + carry, n - len(samples))
-        got, cov = shard_samples(path, want, rng)
+        got, cov = (rig_shard_samples if _is_rig_shard(path) else shard_samples)(path, want, rng)
         carry = want - len(got)
         samples.extend(got)
         cover.extend(cov)
     samples = samples[:n]
+    rig = any(isinstance(s, RigSample) for s in samples)
+    n_views = max((len(s.views) for s in samples if isinstance(s, RigSample)), default=1)
 
-    L = layout(len(samples), tile, cols)
+    L = layout(len(samples), tile, cols, tiles=n_views + 2, lines=LABEL_LINES + (1 if rig else 0))
     sheet = Image.new("RGB", (L.width, L.height), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
     font = _font()
     for k, s in enumerate(samples):
-        pics = (tonemap(s.image, s.mask), normal_to_rgb8(s.normal, s.mask), s.mask.astype(np.uint8) * 255)
-        for j, pic in enumerate(pics):
-            x0, y0, x1, y1 = L.tile_box(k, j)
-            draw.rectangle((x0, y0, x1 - 1, y1 - 1), fill=(0, 0, 0))
+        base = s.sample if isinstance(s, RigSample) else s
+        if isinstance(s, RigSample):  # the shots at one exposure: a dim shot is dim
+            white = np.concatenate([v[base.mask] if base.mask.any() else v.reshape(-1, 3) for _, v in s.views])
+            w = max(float(np.percentile(white, 99.0)) if white.size else 1.0, 1e-8)
+            views = [(c, srgb8(v / w)) for c, v in s.views]
+            views += [("", None)] * (n_views - len(views))
+        else:
+            views = [("", tonemap(base.image, base.mask))]
+        pics = [*views, ("normal", normal_to_rgb8(base.normal, base.mask)),
+                ("mask", base.mask.astype(np.uint8) * 255)]
+        for j, (caption, pic) in enumerate(pics):
+            box = L.tile_box(k, j)
+            x0, y0, x1, y1 = box
+            draw.rectangle((x0, y0, x1 - 1, y1 - 1), fill=(0, 0, 0) if pic is not None else (255, 255, 255))
+            if pic is None:
+                continue
             im = _tile(pic, tile)
             sheet.paste(im.convert("RGB"), (x0 + (tile - im.width) // 2, y0 + (tile - im.height) // 2))
+            if labels and rig and caption:
+                _caption(draw, box, caption, font)
         if labels:
             x0, y0, _, _ = L.label_box(k)
-            for i, text in enumerate(label_lines(s)):
+            lines = label_lines(base) + ([f"rig: {s.rig}"] if isinstance(s, RigSample) else [])
+            for i, text in enumerate(lines):
                 draw.text((x0 + 2, y0 + 3 + i * LINE), _fit(text, font, L.cell_w - 4), fill=(0, 0, 0), font=font)
     if labels:
+        channels = rig and all(s.views[0][0].startswith("channel") for s in samples if isinstance(s, RigSample))
+        what = ("the channels (first, middle, last) of its one shot, normal map, mask" if channels else
+                "shots (first, middle, last), normal map, mask" if rig else "image, normal map, mask")
         title = (f"{root.name}: {len(names)} shards, {len(objects)} frames, {len(cover)} patches"
                  + (f", conditions: {', '.join(sorted(set(conds)))}" if any(conds) else "")
-                 + "  |  each sample: image, normal map, mask")
+                 + f"  |  each sample: {what}")
         draw.text((PAD, 8), _fit(title, font, L.width - 2 * PAD), fill=(0, 0, 0), font=font)
-    plots = _plots(L.width, slants, mats, cover)
+    plots = _plots(L.width, slants, mats, cover, "mean light slant (deg) per frame" if rig else None)
     sheet.paste(Image.fromarray(plots).resize((L.width, PLOTS_H)), (0, L.height - PLOTS_H - PAD))
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(out) as tmp:
