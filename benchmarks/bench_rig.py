@@ -289,7 +289,16 @@ def run_peak(cmd: list[str], env: dict) -> tuple[float, float, str]:
 
 
 def worker_memory(a) -> dict:
+    import shutil
+
     root = Path(tempfile.mkdtemp(prefix="bench-rig-mem-"))
+    try:
+        return _worker_memory(a, root)
+    finally:
+        shutil.rmtree(root, ignore_errors=True)  # the rendered datasets (~100 MB)
+
+
+def _worker_memory(a, root: Path) -> dict:
     env = dict(os.environ, OMP_NUM_THREADS="1", MSPS_THREADS=str(a.threads))
     peaks = {}
     for run in range(a.memory_runs):
