@@ -333,6 +333,9 @@ def compose_shots(rig: RigSpec, per_light: np.ndarray, env: np.ndarray | None = 
             raise ValueError(f"a spectral rig of {len(C)} channels got per-light images of {per_light.shape[-1]}")
     else:
         C = np.asarray(rig.channels, np.float32)  # (M, 3)
+    if (env is None and rig.shots == tuple((k,) for k in range(len(per_light))) and per_light.dtype == np.float32
+            and np.array_equal(C, np.eye(per_light.shape[-1], dtype=np.float32))):
+        return per_light  # one image per light through identity channels: the shots ARE the images (no copy)
     out = np.empty((len(rig.shots),) + per_light.shape[1:3] + (len(C),), np.float32)
     base = env.astype(np.float32) if env is not None else None
     for s, shot in enumerate(rig.shots):

@@ -420,3 +420,18 @@ def test_rig_render_resumes_to_the_same_bytes(tmp_path):
         r = cli(*args, "--resume")
         assert r.returncode == 0, r.stderr[-1500:]
         assert file_digest(shard) == before
+
+
+def test_sensor_model_records_every_shot(rgb_variant):
+    """A [sensor] on a rig: each shot quantised to the sensor's levels at one exposure (no longer clean)."""
+    from msps_render.render import render_frame
+    from msps_render.render.sensor import SensorConfig, apply_sensor
+
+    spec = rig_sphere({"layout": "ring", "n_lights": 4, "slant_deg": 40, "capture": "sequential"}, spp=4, res=48)
+    f = render_frame(spec, variant=rgb_variant)
+    cfg = SensorConfig(enabled=True, bits=8, poisson=False, read_noise_e=0.0)
+    g = apply_sensor(f, cfg, np.random.default_rng(0))
+    exp = g.meta["sensor"]["shots_exposure_used"]
+    levels = g.shots * exp * 255
+    assert np.allclose(levels, np.round(levels), atol=1e-3)  # 8-bit codes
+    assert not np.array_equal(g.shots, f.shots) and np.abs(g.shots - np.minimum(f.shots, 1 / exp)).max() <= 0.5 / 255 / exp + 1e-6

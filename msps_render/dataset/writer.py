@@ -54,7 +54,7 @@ def shard_arrays(content: ShardContent, image_dtype: str = "float16", normal_dty
                  ) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
     """(numeric arrays, string arrays) of a shard, by HDF5 key, in the order they are written."""
     p = content.patches
-    img = p.image.astype(image_dtype)
+    img = p.image.astype(image_dtype, copy=False)  # rig patches arrive in the storage dtype already
     if image_dtype == "float16" and len(p) and not np.isfinite(img).all():
         raise ValueError("radiance exceeds float16 range; use image_dtype='float32'")
     arrays = {

@@ -22,7 +22,7 @@ def _emitter_names(params, spec: SceneSpec) -> list[str]:
     return names
 
 
-def render_emitters_one_pass(mi, scene, ids: list[str], spp: int, seed: int, sensor=None) -> list[np.ndarray]:
+def render_emitters_one_pass(mi, scene, ids: list[str], spp: int, seed: int, sensor=None) -> np.ndarray:
     """One image per emitter id (in `ids` order) from ONE render with the scene's `msps_multilight`
     integrator: every light is sampled at every path vertex and written to its own AOV channels,
     read back by name from the film.  `sensor`: the camera (default: the scene's first)."""

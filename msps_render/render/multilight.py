@@ -425,23 +425,25 @@ def register(variant: str | None = None) -> str:
 _REGISTERED: set[str] = set()
 
 
-def read_emitter_images(film, emitter_ids: Sequence[str]) -> list[np.ndarray]:
-    """Each emitter's (H, W, 3) float32 image, read by AOV channel name from the developed film
-    ((H, W, M) when the integrator wrote M != 3 camera channels, `<id>.C0 ..`)."""
+def read_emitter_images(film, emitter_ids: Sequence[str]) -> np.ndarray:
+    """Every emitter's image, read by AOV channel name from the developed film, as ONE (K, H, W, C) float32
+    array (image k = emitter k; C = 3, or M when the integrator wrote M != 3 camera channels `<id>.C0 ..`).
+    Why one block: with 96 lights each extra copy of the per-light images is 19 MB of a worker's peak."""
     bmp = film.bitmap()
     names = [f.name for f in bmp.struct_()]
     data = np.array(bmp, dtype=np.float32, copy=False)
-    out = []
+    cols = []
     for e in emitter_ids:
         m = 0
         while f"{e}.C{m}" in names:
             m += 1
         try:
-            if m and m != 3:
-                out.append(np.ascontiguousarray(data[..., [names.index(c) for c in channel_names(e, m)]]))
-                continue
-            idx = [names.index(c) for c in channel_names(e)]
+            cols.append([names.index(c) for c in (channel_names(e, m) if m and m != 3 else channel_names(e))])
         except ValueError:
             raise RuntimeError(f"film has no channels for emitter '{e}' (channels: {names})") from None
-        out.append(np.ascontiguousarray(data[..., idx]))
+    if len({len(c) for c in cols}) > 1:
+        raise RuntimeError(f"emitters wrote different numbers of channels: {[len(c) for c in cols]}")
+    out = np.empty((len(cols),) + data.shape[:2] + (len(cols[0]) if cols else 3,), np.float32)
+    for k, idx in enumerate(cols):
+        out[k] = data[..., idx]
     return out

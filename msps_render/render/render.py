@@ -79,8 +79,12 @@ def render_fresh(spec: SceneSpec, variant: str | None = None, threads: int | Non
 def _frame(mi, spec: SceneSpec, variant: str, truth: tuple, images: list[np.ndarray], per_light: bool) -> Frame:
     """The Frame of a render: per-emitter images summed (lights, then the environment), ground truth."""
     normal, mask, depth, part, albedo, blend = truth
-    env_img = images.pop() if spec.environment is not None else None
-    per = np.stack(images) if images else np.zeros((0,) + normal.shape, np.float32)
+    # one (K [+ env], H, W, C) block, lights then the environment: views of it, no per-light copies
+    arr = images if isinstance(images, np.ndarray) else (
+        np.stack(images) if len(images) else np.zeros((0,) + normal.shape, np.float32))
+    n_env = 1 if spec.environment is not None else 0
+    env_img = arr[-1] if n_env else None
+    per = arr[:len(arr) - n_env]
     image = per.sum(axis=0) + (env_img if env_img is not None else 0.0)
     shots = points = None
     if spec.rig is not None:  # the rig's camera images: sums of lights, linear maps of R, G, B

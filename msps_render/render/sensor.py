@@ -100,4 +100,11 @@ def apply_sensor(frame: Frame, cfg: SensorConfig | None, rng: np.random.Generato
     meta["sensor"] = {**cfg.model_dump(), "bits_used": bits, "exposure_used": exposure,
                       "saturation_radiance": 1.0 / exposure,
                       "saturated_fraction": float((clean * exposure >= 1.0).mean())}
-    return dataclasses.replace(frame, image=image, clean_image=np.asarray(clean, dtype=np.float32), meta=meta)
+    shots = frame.shots
+    if shots is not None:  # a rig: every shot recorded by the same camera at one exposure (drawn after the image)
+        shot_exp = auto_exposure(shots.reshape((-1,) + shots.shape[2:]), np.tile(frame.mask, (len(shots), 1)), cfg) \
+            if cfg.exposure == "auto" else float(cfg.exposure)
+        shots = sensor_response(shots, cfg, shot_exp, rng, bits)
+        meta["sensor"]["shots_exposure_used"] = shot_exp
+    return dataclasses.replace(frame, image=image, clean_image=np.asarray(clean, dtype=np.float32), meta=meta,
+                               shots=shots)
