@@ -122,6 +122,7 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
     clock = timer.clock if timer is not None else time.perf_counter
     tw = clock()
     cat = Patches.concat(pats, P)
+    pats.clear()  # the per-frame pieces, freed before the shard is written (a second copy at N images each)
     attrs = {"toolkit_version": msps_render.__version__, "mitsuba_version": mitsuba_info()["mitsuba"],
              "variant": ws.variant, "config_hash": _hash(task.config_json), "seed": task.seed,
              "shard_index": task.index, "condition": task.condition}
