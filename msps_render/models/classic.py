@@ -95,11 +95,30 @@ class Shard:
     readings: np.ndarray  # (n, N, M) nominal reading of each light in each channel
 
 
+def three_as_images(image: np.ndarray, light_dirs: np.ndarray, crosstalk: np.ndarray, frame_index: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A three-light multispectral image read as three grey images (the seed paper's comparison: PS-FCN
+    "trained on the three channels as three images"): image k = channel k, lit by light k, whose reading
+    in it is crosstalk[k, k] (the leak of the other two lights is left in, as a three-image method sees it).
+    (n, P, P, 3) -> images (n, 3, P, P, 1), dirs (n, 3, 3), readings (n, 3, 1)."""
+    images = np.moveaxis(image, -1, 1)[..., None]
+    dirs = np.asarray(light_dirs, np.float32)[frame_index]
+    readings = np.diagonal(np.asarray(crosstalk, np.float32), axis1=-2, axis2=-1)[frame_index][..., None]
+    return images, dirs, readings
+
+
 def read_rig_shard(path: Path) -> Shard:
-    """A format-2 shard of a sequential capture, decoded; InputError naming it otherwise."""
-    from msps_render.dataset.reader import open_shard, read_rig_patches, read_rigs, shard_errors
+    """A format-2 shard of a sequential capture, decoded (or a three-light format-1 shard as three grey
+    images, `three_as_images`); InputError naming it otherwise."""
+    from msps_render.dataset import schema as K
+    from msps_render.dataset.reader import format_version, open_shard, read_rig_patches, read_rigs, shard_errors
 
     with shard_errors(path), open_shard(path) as h:
+        if format_version(h) == K.FORMAT_VERSION:
+            fi = h[K.PATCH_FRAME_INDEX][()]
+            images, dirs, readings = three_as_images(h[K.PATCH_IMAGE][()], h[K.FRAME_LIGHT_DIRS][()],
+                                                     h[K.FRAME_CROSSTALK][()], fi)
+            return Shard(images, h[K.PATCH_NORMAL][()], h[K.PATCH_MASK][()].astype(bool), dirs, readings)
         p = read_rig_patches(h)
         _, nominal = read_rigs(h)
     for r in nominal:
@@ -397,12 +416,33 @@ class ClassicModel:
         n = n[:, :H, :W].permute(1, 2, 0).numpy()
         return np.where(np.asarray(mask, bool)[..., None], n, 0.0).astype(np.float32)
 
+    def predict_three(self, image: np.ndarray, light_dirs: np.ndarray, crosstalk: np.ndarray,
+                      mask: np.ndarray) -> np.ndarray:
+        """A three-light multispectral image (H, W, 3) read as three grey images (`three_as_images`);
+        a network trained on 3-channel images takes each grey image in all three channels."""
+        if self.cfg.net.channels != 1:
+            image = np.asarray(image)
+            imgs, dirs, readings = three_as_images(image[None], light_dirs[None], crosstalk[None], np.zeros(1, int))
+            imgs = np.repeat(imgs, self.cfg.net.channels, axis=-1)
+            return self.normals(imgs[0], dirs[0], np.repeat(readings[0], self.cfg.net.channels, axis=-1), mask)
+        imgs, dirs, readings = three_as_images(image[None], light_dirs[None], crosstalk[None], np.zeros(1, int))
+        return self.normals(imgs[0], dirs[0], readings[0], mask)
+
     def predict_frame(self, frame) -> np.ndarray:
         """A stored rig frame (`RigFrame`, sequential), with its nominal calibration."""
         r = frame.nominal
         if r.shot_list != tuple((k,) for k in range(r.n_lights)):
             raise InputError(frame.shard, f"the classic network reads one image per light; this rig has {r.describe()}")
         return self.normals(frame.shots, r.light_dirs, np.asarray(r.crosstalk).T, frame.mask)
+
+
+def is_classic_checkpoint(path: str | Path) -> bool:
+    """True for a readable checkpoint of this network (others are left to their own loader's errors)."""
+    try:
+        ck = torch.load(Path(path), map_location="cpu", weights_only=True)
+    except Exception:
+        return False
+    return isinstance(ck, dict) and ck.get("format") == FORMAT
 
 
 def load_classic(path: str | Path) -> ClassicModel:

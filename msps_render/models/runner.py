@@ -25,6 +25,7 @@ from msps_render.models.steps import STAGES, STEPS, State, Steps
 
 NET = "net"
 LAMBERTIAN = "lambertian"
+CLASSIC = "classic"  # the any-light network (models/classic.py), here on a three-light image read as three
 
 
 @dataclass(eq=False)
@@ -32,14 +33,14 @@ class Predictor:
     """Normals from an image: a loaded checkpoint or the calibrated Lambertian baseline."""
 
     name: str
-    kind: str  # NET or LAMBERTIAN
+    kind: str  # NET (dual cue), CLASSIC (any-light network, the channels as images) or LAMBERTIAN
     model: object = None
     info: dict = field(default_factory=dict)
     train_lights: dict | None = None  # the geometry a checkpoint was trained for (`geometry_warnings`)
 
     @property
     def network(self) -> bool:
-        return self.kind == NET
+        return self.kind in (NET, CLASSIC)
 
     def image(self, image: np.ndarray, mask: np.ndarray, rig: Rig, on_batch=None) -> np.ndarray:
         """(H, W, 3) normals of a whole image (network: overlapping 40x40 tiles, blended; `on_batch(done,
@@ -48,6 +49,8 @@ class Predictor:
             from msps_render.models.baseline import lambertian_ps
 
             return lambertian_ps(image, rig.light_dirs, rig.crosstalk, mask)
+        if self.kind == CLASSIC:
+            return self.model.predict_three(image, rig.light_dirs, rig.crosstalk, mask)
         from msps_render.models.tiles import predict_image
 
         return predict_image(self.model, image, mask, rig=rig.matrix, on_batch=on_batch)
@@ -59,6 +62,9 @@ class Predictor:
             from msps_render.models.baseline import lambertian_ps
 
             return np.stack([lambertian_ps(x, r.light_dirs, r.crosstalk) for x, r in zip(images, rigs)])
+        if self.kind == CLASSIC:
+            return np.stack([self.model.predict_three(x, r.light_dirs, r.crosstalk, m)
+                             for x, r, m in zip(images, rigs, np.asarray(masks, bool))])
         import torch
 
         with torch.no_grad():
@@ -91,8 +97,14 @@ def lambertian_predictor() -> Predictor:
 
 def checkpoint_predictor(path: str | Path, name: str | None = None) -> Predictor:
     """A checkpoint; unnamed, it is called after its network: net (dual cue), scn or pcn (ablations)."""
+    from msps_render.models import classic
     from msps_render.models.checkpoint import load_checkpoint
 
+    if classic.is_classic_checkpoint(path):  # the any-light network: a three-light image as three images
+        m = classic.load_classic(path)
+        return Predictor(name or CLASSIC, CLASSIC, m, {"description": f"classic network, channels as images "
+                                                                       f"({m.cfg.preset})", "checkpoint": str(path),
+                                                        "preset": m.cfg.preset})
     model, cfg, ck = load_checkpoint(path)
     mode = cfg.net.mode
     return Predictor(name or (NET if mode == "dual" else mode), NET, model,
