@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -39,8 +38,7 @@ from msps_render.errors import InputError, closest
 
 FORMAT = "msps-calibration-1"
 KEYS = ("format", "light_dirs", "slant_deg", "tilts_deg", "lights", "crosstalk", "source", "info")
-DEFAULT_SLANT_DEG = 30.0
-DEFAULT_TILTS_DEG = (0.0, 120.0, 240.0)
+from msps_render.rig import PAPER_CROSSTALK, PAPER_SLANT_DEG as DEFAULT_SLANT_DEG, PAPER_TILTS_DEG as DEFAULT_TILTS_DEG  # noqa: E402
 
 # What a prediction may differ from the trained geometry by before `msps predict` warns.
 SLANT_TOL_DEG = 5.0
@@ -48,7 +46,6 @@ TILT_TOL_DEG = 10.0
 CROSSTALK_TOL = 0.05
 
 
-PAPER_CROSSTALK = np.full((3, 3), 0.04) + np.eye(3) * 0.88  # 0.92 diagonal, 0.04 elsewhere
 
 
 def crosstalk_problem(M) -> str | None:
@@ -266,29 +263,6 @@ def geometry_warnings(light_dirs, crosstalk, trained: dict | None) -> list[str]:
 
 
 # --------------------------------------------------------- the rig as one value
-@dataclass(frozen=True, eq=False)
-class Rig:
-    """The three lights of one image: directions (rows toward the lights, camera frame) and crosstalk.
-    Why one value: the test-time steps, the baseline and a `lambert_cue` network all read a pixel as
-    c = diag(rho) A n with A = crosstalk @ light_dirs (`matrix`); spelling A at each call site let
-    the two factors drift apart.  `assumed`: no calibration was given, the paper's rig stands in."""
-
-    light_dirs: np.ndarray  # (3, 3)
-    crosstalk: np.ndarray  # (3, 3): M[i][k], channel i's response to light k
-    assumed: bool = False
-
-    @property
-    def matrix(self) -> np.ndarray:
-        """A = crosstalk @ light_dirs (3, 3): the rig's linear map from a normal to a white pixel."""
-        return np.asarray(self.crosstalk) @ np.asarray(self.light_dirs)
-
-    @classmethod
-    def of(cls, obj) -> "Rig":
-        """The rig of anything that carries `light_dirs` and `crosstalk` (a frame, a real capture)."""
-        return cls(obj.light_dirs, obj.crosstalk)
-
-    @classmethod
-    def paper(cls) -> "Rig":
-        """The paper's rig (slant 30 deg, tilts 0/120/240, crosstalk 0.92/0.04), assumed."""
-        L, M = parse_calibration({}, "the paper's rig")
-        return cls(L, M, assumed=True)
+# `Rig` lives in msps_render.rig (any number of lights, channels and shots); the three-light rig of this
+# module's calibration JSON is its first case (`Rig.paper()`, `Rig(light_dirs, crosstalk)`).
+from msps_render.rig import Rig  # noqa: E402,F401,I001  (re-exported: the dual-cue code imports it from here)

@@ -52,6 +52,10 @@ MIN_LIGHT_DISTANCE = 1.0  # objects fit in the unit sphere: a point light must l
 MAX_SLANT_DEG = 89.0
 SPECTRAL_SPEC_FIELDS = ("filters", "camera", "crosstalk")  # RigSpec: left out of RGB rigs' JSON
 SPECTRAL_CONFIG_FIELDS = ("filters", "camera", "led_peaks_nm", "led_fwhm_nm", "spectra")  # RigConfig: same
+# The seed paper's rig: three lights at slant 30 deg, tilts 0/120/240, crosstalk 0.92 own / 0.04 others.
+PAPER_SLANT_DEG = 30.0
+PAPER_TILTS_DEG = (0.0, 120.0, 240.0)
+PAPER_CROSSTALK = np.full((3, 3), 0.04) + np.eye(3) * 0.88
 DEFAULT_SPECTRAL_CAMERA = "Nikon 5100 (NPL)"  # as msps_render.render.spectral.DEFAULT_CAMERA
 
 
@@ -210,10 +214,10 @@ class Rig:
     @classmethod
     def paper(cls) -> "Rig":
         """The paper's rig (slant 30 deg, tilts 0/120/240, crosstalk 0.92/0.04), assumed."""
-        from msps_render.calibration import parse_calibration
-
-        L, M = parse_calibration({}, "the paper's rig")
-        return cls(L, M, assumed=True)
+        s = math.radians(PAPER_SLANT_DEG)
+        L = np.array([[math.sin(s) * math.cos(math.radians(t)), math.sin(s) * math.sin(math.radians(t)),
+                       math.cos(s)] for t in PAPER_TILTS_DEG])
+        return cls(L, PAPER_CROSSTALK.copy(), assumed=True)
 
 
 def rig_of_spec(spec) -> Rig:
