@@ -45,12 +45,17 @@ def _steps(given: list[str], columns: bool, default, **old: bool) -> list:
     aliased = from_flags(columns, **old)
     if aliased and given:
         raise InputError("--steps", "give --steps or the old step flags (--selfcal ...), not both")
-    if aliased:  # one line naming the equivalent, so scripts move before the flags go
-        flags = " ".join(f"--{k}" for k, on in old.items() if on)
-        same = " ".join(f"--steps {s}" for s in aliased)
+    return aliased or [Steps.parse(g) for g in given] or [default]
+
+
+def _say_deprecated(columns: list, **old: bool) -> None:
+    """After a command that used the old step flags succeeded: one line naming the --steps equivalent (so
+    scripts move before the flags go; printed last, so a refused input keeps its one error line)."""
+    flags = " ".join(f"--{k}" for k, on in old.items() if on)
+    if flags:
+        same = " ".join(f"--steps {s}" for s in columns)
         typer.echo(f"warning: {flags} {'is' if len(flags.split()) == 1 else 'are'} deprecated and will be "
                    f"removed; the same: {same}", err=True)
-    return aliased or [Steps.parse(g) for g in given] or [default]
 
 
 @app.command("train")
@@ -145,6 +150,7 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
     for line in summary_lines(r):
         typer.echo(line)
     typer.echo("wrote " + ", ".join(r["files"]))
+    _say_deprecated(columns, selfcal=selfcal, segments=segments, netcal=netcal, mirror=mirror, refine=refine)
 
 
 @app.command("predict")
@@ -189,6 +195,7 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
         else:
             typer.echo("no pixel has both a mask and a ground-truth normal")
     typer.echo("wrote " + ", ".join(map(str, files)))
+    _say_deprecated([chosen], selfcal=selfcal, segments=segments, netcal=netcal, mirror=mirror, refine=refine)
 
 
 @app.command("bench-real")
@@ -261,3 +268,4 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
         typer.echo(line)
     typer.echo(f"wrote {out}/results.json, results.md, figure.png and per-object maps "
                f"({', '.join(bench.summary['objects'])})")
+    _say_deprecated(columns, selfcal=selfcal, segments=segments, netcal=netcal, mirror=mirror, refine=refine)
