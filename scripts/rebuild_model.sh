@@ -5,13 +5,34 @@
 # reports are kept.  Run from the repository root after `bash scripts/setup.sh`; the checks need the
 # third-party test meshes (MSPS_TEST_DATA, default ../shared/data).
 # Usage: bash scripts/rebuild_model.sh [DATA_DIR] [RUN_DIR]
+#        bash scripts/rebuild_model.sh classic [DATA_DIR] [RUN_DIR]   # models/classic-cpu.pt instead (~50 min)
 set -euo pipefail
+CLASSIC=0
+if [ "${1:-}" = classic ]; then CLASSIC=1; shift; fi
 DATA=${1:-data}
 RUNS=${2:-runs}
 MSPS=${MSPS:-.venv/bin/msps}
 PY=${PY:-.venv/bin/python}
 export MSPS_TEST_DATA=${MSPS_TEST_DATA:-../shared/data}
 R="--workers 2 --resume --quiet"
+
+if [ "$CLASSIC" = 1 ]; then
+  # The classic (any-light) network, trained on msps renders only (docs/history.md stage 15):
+  # classic-train (240 shards, 64 white hemisphere lights per frame; ~5-18 min on 2 cores), classic-val,
+  # the 30-minute classic-cpu run, its best.pt exported, then scored on DiLiGenT with all 96 lights.
+  $MSPS render classic-train --out "$DATA/classic-train" $R
+  $MSPS render classic-val --out "$DATA/classic-val" $R
+  how=""
+  [ -f "$RUNS/classic-cpu/last.pt" ] && how="--resume"
+  OMP_WAIT_POLICY=PASSIVE $MSPS train classic-cpu --data "$DATA/classic-train" --val "$DATA/classic-val" \
+    --out "$RUNS/classic-cpu" --threads 2 $how
+  [ -f "$RUNS/classic-cpu.pt" ] || $PY -m msps_render.models.classic export "$RUNS/classic-cpu/best.pt" "$RUNS/classic-cpu.pt"
+  D=$MSPS_TEST_DATA/diligent
+  rm -rf "$RUNS/classic-diligent"
+  $MSPS bench-real "$D/ballPNG" "$D/catPNG" "$D/gobletPNG" "$D/pot1PNG" --lights all --out "$RUNS/classic-diligent" \
+    --checkpoint rebuilt="$RUNS/classic-cpu.pt" --checkpoint shipped=models/classic-cpu.pt
+  exit 0
+fi
 
 # 1. training corpora: procedural shapes, training-split measured materials (never a test mesh or a
 #    held-out material: tests/test_presets.py), and the validation corpus

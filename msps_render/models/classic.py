@@ -463,3 +463,19 @@ def summary_lines(r: dict) -> list[str]:
             f"all lights of each validation patch)",
             f"checkpoint: {ck}  (resume: --resume; curve: {out / 'metrics.png'})",
             f"evaluate: msps eval --data TEST_DIR --checkpoint {ck} --out REPORT_DIR"]
+
+
+def export(src: str | Path, dst: str | Path) -> Path:
+    """A training checkpoint as a shipped model: weights, config and provenance, no optimizer or RNG state."""
+    _, _, ck = load(src)
+    from msps_render.models.checkpoint import save_dict
+
+    return save_dict(Path(dst), {k: v for k, v in ck.items() if k not in ("optimizer", "torch_rng")})
+
+
+if __name__ == "__main__":  # python -m msps_render.models.classic export SRC DST (scripts/rebuild_model.sh)
+    import sys
+
+    if len(sys.argv) != 4 or sys.argv[1] != "export":
+        sys.exit("usage: python -m msps_render.models.classic export SRC.pt DST.pt")
+    print(export(sys.argv[2], sys.argv[3]))
