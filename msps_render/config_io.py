@@ -23,6 +23,18 @@ class StrictModel(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+def omit_defaults(model: BaseModel, d, names) -> dict:
+    """`d` (what `model`'s serializer made) without the fields `names` that hold their default or nothing.
+    Why: fields added to a format later stay out of what configs and scenes without them serialise to, so
+    their JSON, hashes and shards keep their bytes (each such model's `model_serializer` calls this)."""
+    if isinstance(d, dict):
+        for k in names:
+            v = getattr(model, k)
+            if k in d and (v == type(model).model_fields[k].default or v in ((), [], None)):
+                d.pop(k)
+    return d
+
+
 class FrozenModel(StrictModel):
     """A `StrictModel` whose values are immutable once validated (scene data)."""
 

@@ -38,7 +38,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator, model_serializer, model_validator
 
-from msps_render.config_io import FrozenModel, StrictModel
+from msps_render.config_io import FrozenModel, omit_defaults, StrictModel
 from msps_render.errors import InputError
 
 CAPTURES = ("multiplexed", "sequential")
@@ -91,12 +91,7 @@ class RigSpec(FrozenModel):
     @model_serializer(mode="wrap")
     def _without_absent_spectral(self, handler):
         """RGB rigs serialise without the spectral fields: their stored scenes keep their bytes."""
-        d = handler(self)
-        if isinstance(d, dict):
-            for k in SPECTRAL_SPEC_FIELDS:
-                if d.get(k) in ((), [], None):
-                    d.pop(k, None)
-        return d
+        return omit_defaults(self, handler(self), SPECTRAL_SPEC_FIELDS)
 
     @model_validator(mode="after")
     def _check(self) -> "RigSpec":

@@ -67,20 +67,12 @@ def shard_arrays(content: ShardContent, image_dtype: str = "float16", normal_dty
     fr = content.frames
     if is_rig_content(content):
         return _rig_arrays(content, arrays, image_dtype)
-    arrays.update({
+    arrays.update(_frame_rows(fr, {
         K.FRAME_LIGHT_DIRS: np.array([f.light_dirs for f in fr], np.float32).reshape(-1, 3, 3),
         K.FRAME_CROSSTALK: np.array([f.crosstalk for f in fr], np.float32).reshape(-1, 3, 3),
-        K.FRAME_LIGHT_RGB: np.array([f.light_rgb for f in fr], np.float32).reshape(-1, 3, 3),
-        K.FRAME_SLANT_DEG: np.array([f.slant_deg for f in fr], np.float32),
-        K.FRAME_ENV_RATIO: np.array([f.env_ratio for f in fr], np.float32),
-        K.FRAME_ENV_ROTATION_DEG: np.array([f.env_rotation_deg for f in fr], np.float32),
-        K.FRAME_SPP: np.array([f.spp for f in fr], np.int32),
-        K.FRAME_SEED: np.array([f.frame_seed for f in fr], np.int64),
-    })
+        K.FRAME_LIGHT_RGB: np.array([f.light_rgb for f in fr], np.float32).reshape(-1, 3, 3)}))
     if fr and fr[0].image is not None:
-        arrays[K.FRAME_IMAGE] = np.stack([f.image for f in fr]).astype(np.float32)
-        arrays[K.FRAME_NORMAL] = np.stack([f.normal for f in fr]).astype(np.float32)
-        arrays[K.FRAME_MASK] = np.stack([f.mask for f in fr]).astype(np.uint8)
+        arrays.update(_whole_frames(fr))
         if all(f.albedo is not None for f in fr):
             arrays[K.FRAME_ALBEDO] = np.stack([f.albedo for f in fr]).astype(np.float16)
             arrays[K.FRAME_BLEND] = np.stack([f.blend for f in fr]).astype(np.float16)
@@ -93,6 +85,22 @@ def shard_arrays(content: ShardContent, image_dtype: str = "float16", normal_dty
     strings = {K.FRAME_SCENE_JSON: [f.scene_json for f in fr], K.FRAME_OBJECT: [f.object for f in fr],
                K.FRAME_MATERIALS: [f.materials for f in fr], K.FRAME_CONDITION: [f.condition for f in fr]}
     return arrays, strings
+
+
+def _frame_rows(fr: list, lights: dict) -> dict:
+    """Per-frame arrays, in the order they are written: the lights (each format's shapes), then the scalars."""
+    return {**lights,
+            K.FRAME_SLANT_DEG: np.array([f.slant_deg for f in fr], np.float32),
+            K.FRAME_ENV_RATIO: np.array([f.env_ratio for f in fr], np.float32),
+            K.FRAME_ENV_ROTATION_DEG: np.array([f.env_rotation_deg for f in fr], np.float32),
+            K.FRAME_SPP: np.array([f.spp for f in fr], np.int32),
+            K.FRAME_SEED: np.array([f.frame_seed for f in fr], np.int64)}
+
+
+def _whole_frames(fr: list) -> dict:
+    return {K.FRAME_IMAGE: np.stack([f.image for f in fr]).astype(np.float32),
+            K.FRAME_NORMAL: np.stack([f.normal for f in fr]).astype(np.float32),
+            K.FRAME_MASK: np.stack([f.mask for f in fr]).astype(np.uint8)}
 
 
 def is_rig_content(content: ShardContent) -> bool:
@@ -109,23 +117,15 @@ def _rig_arrays(content: ShardContent, arrays: dict, image_dtype: str):
     m = {np.asarray(f.crosstalk).shape[0] for f in fr}
     if len(n) > 1 or len(m) > 1:
         raise ValueError(f"frames of one shard must share the rig's size, got lights {sorted(n)}, channels {sorted(m)}")
-    arrays.update({
+    arrays.update(_frame_rows(fr, {
         K.FRAME_LIGHT_DIRS: np.array([f.light_dirs for f in fr], np.float32),
         K.FRAME_CROSSTALK: np.array([f.crosstalk for f in fr], np.float32),
         K.FRAME_LIGHT_RGB: np.array([f.light_rgb for f in fr], np.float32),
         K.FRAME_LIGHT_POS: np.array([f.light_pos for f in fr], np.float32),
         K.FRAME_NOMINAL_DIRS: np.array([f.nominal_dirs for f in fr], np.float32),
-        K.FRAME_NOMINAL_CROSSTALK: np.array([f.nominal_crosstalk for f in fr], np.float32),
-        K.FRAME_SLANT_DEG: np.array([f.slant_deg for f in fr], np.float32),
-        K.FRAME_ENV_RATIO: np.array([f.env_ratio for f in fr], np.float32),
-        K.FRAME_ENV_ROTATION_DEG: np.array([f.env_rotation_deg for f in fr], np.float32),
-        K.FRAME_SPP: np.array([f.spp for f in fr], np.int32),
-        K.FRAME_SEED: np.array([f.frame_seed for f in fr], np.int64),
-    })
+        K.FRAME_NOMINAL_CROSSTALK: np.array([f.nominal_crosstalk for f in fr], np.float32)}))
     if fr and fr[0].image is not None:
-        arrays[K.FRAME_IMAGE] = np.stack([f.image for f in fr]).astype(np.float32)
-        arrays[K.FRAME_NORMAL] = np.stack([f.normal for f in fr]).astype(np.float32)
-        arrays[K.FRAME_MASK] = np.stack([f.mask for f in fr]).astype(np.uint8)
+        arrays.update(_whole_frames(fr))
         arrays[K.FRAME_SHOTS] = _radiance(np.stack([f.shots for f in fr]), image_dtype, "shot")
         if all(f.points is not None for f in fr):
             arrays[K.FRAME_POINTS] = np.stack([f.points for f in fr]).astype(np.float32)

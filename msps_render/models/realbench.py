@@ -353,6 +353,18 @@ def write_report(bench: RealBench, objects: list[RealObject], out: Path, setting
     return files
 
 
+def capture_names(folders) -> tuple[list[Path], list[str]]:
+    """(folders, object names): at least one, names unique (one line naming the folder otherwise)."""
+    folders = [Path(f) for f in folders]
+    if not folders:
+        raise InputError("CAPTURES", "give at least one capture folder")
+    names = [object_name(f) for f in folders]
+    for f, n in zip(folders, names):
+        if names.count(n) > 1:
+            raise InputError(f, f"object name '{n}' given twice (two folders with the same name)")
+    return folders, names
+
+
 def run_bench_real(folders, out: str | Path, checkpoints=(), columns: list[Steps] | None = None, *,
                    slant_deg: float = 30.0, tilts_deg=(0.0, 120.0, 240.0), crosstalk: np.ndarray | None = None,
                    skip=(), srgb: bool = False, warn=None, progress: bool = False) -> RealBench:
@@ -364,13 +376,7 @@ def run_bench_real(folders, out: str | Path, checkpoints=(), columns: list[Steps
 
     out = Path(out)
     check_new_out(out)
-    folders = [Path(f) for f in folders]
-    if not folders:
-        raise InputError("CAPTURES", "give at least one capture folder")
-    names = [object_name(f) for f in folders]
-    for f, n in zip(folders, names):
-        if names.count(n) > 1:
-            raise InputError(f, f"object name '{n}' given twice (two folders with the same name)")
+    folders, names = capture_names(folders)
     M = PAPER_CROSSTALK.copy() if crosstalk is None else np.asarray(crosstalk, np.float64)
     skips = parse_skip(skip, names)
     columns = columns or [DEFAULT_PHOTOS]

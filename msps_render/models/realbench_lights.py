@@ -105,18 +105,12 @@ def run_bench_real_lights(folders, out: str | Path, checkpoints=(), lights: str 
     """Score every checkpoint (classic networks) and the baseline on every capture; write results.json and
     results.md into OUT (new or empty; all-or-nothing)."""
     from msps_render.io.staging import check_new_out, staged_dir
-    from msps_render.models.realbench import VALIDATION_NOTE, object_name
+    from msps_render.models.realbench import VALIDATION_NOTE, capture_names
     from msps_render.progress import Bar
 
     out = Path(out)
     check_new_out(out)
-    folders = [Path(f) for f in folders]
-    if not folders:
-        raise InputError("CAPTURES", "give at least one capture folder")
-    names = [object_name(f) for f in folders]
-    for f, n in zip(folders, names):
-        if names.count(n) > 1:
-            raise InputError(f, f"object name '{n}' given twice")
+    folders, names = capture_names(folders)
     methods = _methods(checkpoints)  # every checkpoint loads before any photo is read
     from msps_render.compose import read_capture
 

@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator, model_serializer, model_validator
 
-from msps_render.config_io import StrictModel
+from msps_render.config_io import StrictModel, omit_defaults
 from msps_render.errors import InputError
 from msps_render.rig import (CAPTURES, COLOURS, DEFAULT_SPECTRAL_CAMERA, LAYOUTS, MAX_SLANT_DEG, MIN_LIGHT_DISTANCE,
                              SPECTRAL_CONFIG_FIELDS,
@@ -102,12 +102,7 @@ class RigConfig(StrictModel):
     @model_serializer(mode="wrap")
     def _without_absent_spectral(self, handler):
         """RGB rigs serialise (and hash) as before spectral rigs existed: same configs, same shards."""
-        d = handler(self)
-        if isinstance(d, dict):
-            for k in SPECTRAL_CONFIG_FIELDS:
-                if k in d and getattr(self, k) == type(self).model_fields[k].default:
-                    d.pop(k)
-        return d
+        return omit_defaults(self, handler(self), SPECTRAL_CONFIG_FIELDS)
 
     @field_validator("slant_range_deg")
     @classmethod

@@ -15,7 +15,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_serializer
 
 from msps_render.brdf.families import FAMILIES, GAMUTS, unknown_family
-from msps_render.config_io import StrictModel, read_toml, validate
+from msps_render.config_io import StrictModel, omit_defaults, read_toml, validate
 from msps_render.errors import InputError
 from msps_render.scene.envmap import envmap_pixels, expand_path, irradiance_on_axis, missing_asset
 from msps_render.scene.families import expand_families, sample_family_params
@@ -207,10 +207,7 @@ class SceneConfig(StrictModel):
     @model_serializer(mode="wrap")
     def _without_absent_rig(self, handler):
         """Configs without a rig serialise (and hash) as before the rig existed: same shards, same bytes."""
-        d = handler(self)
-        if self.rig is None and isinstance(d, dict):
-            d.pop("rig", None)
-        return d
+        return omit_defaults(self, handler(self), ("rig",))
 
 
 def _sample_shape(cfg: ShapeConfig, rng: np.random.Generator, frame_index: int | None = None) -> ShapeSpec:

@@ -20,7 +20,7 @@ from pydantic import Field, field_validator, model_serializer, model_validator
 
 from msps_render.brdf.families import MATERIAL_KINDS
 from msps_render.scene.textures import TextureSpec
-from msps_render.config_io import FrozenModel
+from msps_render.config_io import FrozenModel, omit_defaults
 from msps_render.errors import InputError, format_validation_error
 from msps_render.rig import RigSpec
 from msps_render.scene.families import SHAPE_FAMILIES, unknown_family_message
@@ -217,10 +217,7 @@ class SceneSpec(FrozenModel):
 
     @model_serializer(mode="wrap")
     def _without_absent_rig(self, handler):
-        d = handler(self)
-        if self.rig is None and isinstance(d, dict):
-            d.pop("rig", None)
-        return d
+        return omit_defaults(self, handler(self), ("rig",))
 
     @model_validator(mode="before")
     @classmethod
