@@ -119,9 +119,9 @@ A7="$RUNS/lambert/last.pt"
 [ -f "$RUNS/report-7a/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --data "$DATA/unseen-test-grey" \
   --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" \
   --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" --model 7a="$A7" --out "$RUNS/report-7a"
-[ -f "$RUNS/real-7a/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-7a" --selfcal \
+[ -f "$RUNS/real-7a/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-7a" --steps none --steps selfcal \
   --checkpoint 7a="$A7" --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --checkpoint 6a=models/dualcue-cpu-colour.pt
-[ -f "$RUNS/eval-7a-unseen-robust-env/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal \
+[ -f "$RUNS/eval-7a-unseen-robust-env/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --steps none --steps selfcal \
   --checkpoint 7a="$A7" --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --method lambertian \
   --out "$RUNS/eval-7a-unseen-robust-env"
 [ -f "$RUNS/blob-7a.txt" ] || $PY benchmarks/blob_check.py --model 7a="$A7" | tee "$RUNS/blob-7a.txt"
@@ -138,8 +138,8 @@ done
   --data "$DATA/unseen-test-patches" --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" \
   --model v0.4=models/dualcue-cpu-v0.4.pt --model 6a=models/dualcue-cpu-colour.pt --out "$RUNS/report-refine"
 [ -f "$RUNS/real-refine/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-refine" \
-  --selfcal --refine --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --checkpoint 6a=models/dualcue-cpu-colour.pt
-[ -f "$RUNS/eval-refine-env/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
+  --steps none --steps selfcal --steps refine --steps selfcal+refine --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --checkpoint 6a=models/dualcue-cpu-colour.pt
+[ -f "$RUNS/eval-refine-env/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --steps none --steps selfcal --steps refine --steps selfcal+refine \
   --checkpoint v0.4=models/dualcue-cpu-v0.4.pt --method lambertian --out "$RUNS/eval-refine-env"
 [ -f "$RUNS/assumed-rig/assumed_rig.json" ] || $PY experiments/assumed_rig.py --data "$DATA/unseen-rig-crosstalk" \
   --data "$DATA/unseen-rig-jitter" --model v0.4=models/dualcue-cpu-v0.4.pt --out "$RUNS/assumed-rig"
@@ -178,8 +178,8 @@ $MSPS train cpu --threads 2 --data "$DATA/train-colour-env" --data "$DATA/train-
 [ -f "$RUNS/report-9c/report.json" ] || $PY benchmarks/unseen_report.py --selfcal --refine --data "$DATA/unseen-test-grey" \
   --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" \
   --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" --model 9c="$RUNS/mirror-aug/last.pt" --out "$RUNS/report-9c"
-[ -f "$RUNS/real-9c/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-9c" --selfcal \
-  --refine --checkpoint 9c="$RUNS/mirror-aug/last.pt"
+[ -f "$RUNS/real-9c/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-9c" \
+  --steps none --steps selfcal --steps refine --steps selfcal+refine --checkpoint 9c="$RUNS/mirror-aug/last.pt"
 # stage 10a: the albedo augmentation (rule in runs/10-decision.txt), the 9c control's run with train.albedo_aug=0.5
 resume=""; [ -f "$RUNS/albedo-aug/last.pt" ] && resume="--resume"
 $MSPS train cpu --threads 2 --data "$DATA/train-colour-env" --data "$DATA/train-grey-30" --data "$DATA/blobs-48" \
@@ -194,8 +194,8 @@ $MSPS train cpu --threads 2 --data "$DATA/train-colour-env" --data "$DATA/train-
   --data "$DATA/unseen-test-colour" --data "$DATA/unseen-test-smooth" --data "$DATA/unseen-test-patches" \
   --data "$DATA/unseen-test-texture" --data "$DATA/unseen-test" --model v0.4=models/dualcue-cpu-v0.4.pt \
   --model control="$RUNS/mirror-aug-control/last.pt" --model 10a="$RUNS/albedo-aug/last.pt" --out "$RUNS/report-10"
-[ -f "$RUNS/real-10a/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-10a" --selfcal \
-  --refine --checkpoint 10a="$RUNS/albedo-aug/last.pt"
+[ -f "$RUNS/real-10a/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-10a" \
+  --steps none --steps selfcal --steps refine --steps selfcal+refine --checkpoint 10a="$RUNS/albedo-aug/last.pt"
 # stage 11 (rule in runs/11-decision.txt): 10a with the tint only where it is exact and physical
 # (train.albedo_aug_scope=lambertian), fixed in steps (10a's 7,685) so other work cannot change the run;
 # 11a at share 0.5, 11b at share 1.0 (the dose: only 38.9 % of the patches are eligible)
@@ -218,7 +218,7 @@ evaluate_candidate() {
   [ -f "$RUNS/real-11-$n/results.json" ] || $MSPS bench-real ../shared/data/diligent/*PNG --out "$RUNS/real-11-$n" \
     --selfcal --refine --checkpoint "$m"
   [ -f "$RUNS/blob-11-$n.txt" ] || $PY benchmarks/blob_check.py --model "$m" > "$RUNS/blob-11-$n.txt"
-  [ -f "$RUNS/eval-11-env-$n/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
+  [ -f "$RUNS/eval-11-env-$n/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --steps none --steps selfcal --steps refine --steps selfcal+refine \
     --checkpoint "$m" --method lambertian --out "$RUNS/eval-11-env-$n"
 }
 for m in v0.4=models/dualcue-cpu-v0.4.pt 11a="$RUNS/albedo-lamb/last.pt" 11b="$RUNS/albedo-lamb-1/last.pt"; do
@@ -298,7 +298,7 @@ $MSPS render val-frames --out "$DATA/val-frames" --workers 2 --resume --quiet
 for m in v05=models/dualcue-cpu.pt v04=models/dualcue-cpu-v0.4.pt; do
   tests_and_diligent 13 "$m" --selfcal --refine --netcal
 done
-[ -f "$RUNS/eval-13-env-v05/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
+[ -f "$RUNS/eval-13-env-v05/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --steps none --steps selfcal --steps refine --steps selfcal+refine \
   --netcal --checkpoint v05=models/dualcue-cpu.pt --method lambertian --out "$RUNS/eval-13-env-v05"
 # 13a: v0.5 + 5,000 steps with grey objects under environment light in the diet
 $MSPS render train-grey-env --out "$DATA/train-grey-env" --workers 2 --resume --quiet
@@ -310,5 +310,5 @@ $MSPS train cpu --threads 2 --data "$DATA/train-grey-30" --data "$DATA/blobs-48"
 # ... and the rule's measurements (docs/history.md "Stage 13": recorded, not shipped)
 tests_and_diligent 13 13a="$RUNS/s13a/last.pt" --selfcal --refine --netcal
 $PY benchmarks/blob_check.py --model 13a="$RUNS/s13a/last.pt"
-[ -f "$RUNS/eval-13-env-13a/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --selfcal --refine \
+[ -f "$RUNS/eval-13-env-13a/metrics.json" ] || $MSPS eval --data "$DATA/unseen-robust-env" --steps none --steps selfcal --steps refine --steps selfcal+refine \
   --netcal --checkpoint 13a="$RUNS/s13a/last.pt" --method lambertian --out "$RUNS/eval-13-env-13a"

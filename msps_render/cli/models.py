@@ -168,7 +168,7 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
                 crosstalk: Optional[str] = typer.Option(None, help="JSON 3x3 crosstalk matrix"),
                 linear: Optional[bool] = typer.Option(None, "--linear/--srgb", help=PNG_HELP),
                 normal_gt: Optional[Path] = typer.Option(None, "--normal-gt", help="ground-truth normals: .npy "
-                                                         "(H, W, 3) or EXR/PNG normal map ((n+1)/2-encoded; "
+                                                         "(H, W, 3), DiLiGenT's Normal_gt.mat, or an EXR/PNG normal map ((n+1)/2-encoded; "
                                                          "signed EXR too); zero normals are left out. Adds "
                                                          "the truth and the error map to the panel and writes "
                                                          "OUT-metrics.json"),
