@@ -119,3 +119,23 @@ def test_dual_cue_refuses_rig_shards_in_one_line(rig_data, tmp_path):
     r = cli("train", "cpu", "--data", rig_data / "train", "--val", rig_data / "val", "--out", tmp_path / "r")
     line = one_line_error(r)
     assert "dual-cue" in line and "image(s)" in line
+
+
+def test_predict_on_a_capture_folder(tmp_path):
+    """`msps predict FOLDER`: per-light photos with their lights -> normals, by the shipped classic network
+    (default) or least squares; single-image options are refused in one line."""
+    from msps_render.testing import write_sphere_capture
+
+    cap = write_sphere_capture(tmp_path / "sphere", [(s, t) for s in (20, 40) for t in range(0, 360, 60)], 48,
+                               np.random.default_rng(1))
+    m = cap["mask"]
+    errs = {}
+    for method in ("lambertian", "net"):
+        r = cli("predict", tmp_path / "sphere", "--out", tmp_path / method, "--method", method)
+        assert r.returncode == 0, r.stderr[-1500:]
+        n = np.load(tmp_path / f"{method}.npy")
+        errs[method] = np.degrees(np.arccos(np.clip((n[m] * cap["normal"][m]).sum(-1), -1, 1))).mean()
+    assert errs["lambertian"] < 3.0  # exact Lambertian sphere; attached shadows at the rim only
+    assert errs["net"] < 15.0, errs  # the shipped network on a sphere it never saw: not a random normal
+    r = cli("predict", tmp_path / "sphere", "--out", tmp_path / "x", "--steps", "selfcal")
+    assert "capture folder" in one_line_error(r)

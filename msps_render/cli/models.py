@@ -156,7 +156,10 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
 @app.command("predict")
 @clean_errors
 def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (linear RGB), JPG (sRGB-encoded, "
-                                               "decoded to linear) or PNG (see --linear/--srgb); alpha dropped"),
+                                               "decoded to linear) or PNG (see --linear/--srgb); alpha dropped. "
+                                               "Or a folder of per-light photos with their lights (DiLiGenT "
+                                               "layout): classic photometric stereo with the classic network "
+                                               "(default models/classic-cpu.pt) or --method lambertian"),
                 out: Path = typer.Option(..., help="output path stem, dots kept: OUT.npy, OUT.png, OUT-panel.png "
                                          "(and OUT-metrics.json with --normal-gt)"),
                 checkpoint: Optional[Path] = typer.Option(None, help="checkpoint (default: shipped cpu model)"),
@@ -182,6 +185,18 @@ def predict_cmd(image: Path = typer.Argument(..., help="image: EXR/HDR/NPY (line
     from msps_render.pipeline.outdir import check_writable
 
     check_writable(out.parent)
+    if image.is_dir():  # a folder of per-light photos with their lights: classic photometric stereo
+        from msps_render.errors import InputError
+        from msps_render.models.realbench_lights import predict_folder
+
+        if steps or any((selfcal, segments, netcal, mirror, refine)) or calibration or light_dirs or crosstalk \
+                or mask or normal_gt:
+            raise InputError(image, "a capture folder is read with its own light_directions.txt, "
+                                    "light_intensities.txt and mask.png: --steps, --calibration, --light-dirs, "
+                                    "--crosstalk, --mask and --normal-gt are for one three-light image")
+        files = predict_folder(image, out, checkpoint, method)
+        typer.echo("wrote " + ", ".join(map(str, files)))
+        return
     (chosen,) = _steps([steps] if steps is not None else [], False, DEFAULT_PHOTOS, selfcal=selfcal,
                        segments=segments, netcal=netcal, mirror=mirror, refine=refine)
     rig = load_rig(calibration, light_dirs, crosstalk)

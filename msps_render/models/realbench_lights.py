@@ -52,14 +52,16 @@ def spread(light_dirs: np.ndarray, k: int) -> np.ndarray:
     return np.sort(np.array(chosen))
 
 
-def load_capture(folder: str | Path, lights: str | int = "all", name: str | None = None) -> Capture:
-    """A DiLiGenT-layout folder with its lights (one line naming the file on any problem)."""
+def load_capture(folder: str | Path, lights: str | int = "all", name: str | None = None,
+                 need_truth: bool = True) -> Capture:
+    """A DiLiGenT-layout folder with its lights (one line naming the file on any problem).  `need_truth`
+    False (`msps predict` on a folder): mask.png optional (else the pixels any photo lights), no Normal_gt."""
     from msps_render.compose import read_capture, read_mask, read_photo
     from msps_render.models.realbench import ZERO_NORMAL_NORM, object_name, read_normal_gt
 
     cap = read_capture(folder)
     name = name or object_name(cap.root)
-    if cap.mask_path is None:
+    if cap.mask_path is None and need_truth:
         raise InputError(cap.root / "mask.png", "missing: the benchmark scores the pixels inside the mask")
     keep = np.arange(len(cap.images))
     note = ""
@@ -74,10 +76,13 @@ def load_capture(folder: str | Path, lights: str | int = "all", name: str | None
         if not cap.images[i].is_file():
             raise InputError(cap.images[i], "image file not found (listed in filenames.txt)")
     shots = np.stack([read_photo(cap.images[i], radiometric=cap.radiometric) for i in keep]).astype(np.float32)
-    mask = read_mask(cap.mask_path, shots.shape[1:3])
+    mask = read_mask(cap.mask_path, shots.shape[1:3]) if cap.mask_path else (shots > 0).any(axis=(0, 3))
     shots *= mask[None, ..., None]
-    gt, _ = read_normal_gt(cap.root, mask.shape)
-    valid = mask & (np.linalg.norm(gt, axis=-1) >= ZERO_NORMAL_NORM)
+    if need_truth:
+        gt, _ = read_normal_gt(cap.root, mask.shape)
+        valid = mask & (np.linalg.norm(gt, axis=-1) >= ZERO_NORMAL_NORM)
+    else:
+        gt, valid = np.zeros(mask.shape + (3,)), np.zeros(mask.shape, bool)
     rig = Rig(cap.light_dirs[keep], cap.intensities[keep].T, shots=tuple((j,) for j in range(len(keep))))
     return Capture(name, shots, rig, mask, gt, valid, [int(i) + 1 for i in keep], note)
 
@@ -158,3 +163,28 @@ def table_lines(s: dict) -> list[str]:
         L.append(f"\n{o}: {q}")
     L.append(f"\n{s['note']}")
     return L
+
+
+def predict_folder(folder: str | Path, out: str | Path, checkpoint: str | Path | None = None,
+                   method: str = "net", lights: str | int = "all") -> list[Path]:
+    """`msps predict CAPTURE_DIR`: normals from a folder of per-light photos with their lights (DiLiGenT
+    layout; mask.png optional): the classic network (default: models/classic-cpu.pt) or calibrated least
+    squares.  Writes OUT.npy (H, W, 3) and OUT.png; every check runs before anything is written."""
+    from msps_render.atomic import save_array
+    from msps_render.io.images import write_png
+    from msps_render.models.baseline import lambertian_ps_rig
+    from msps_render.models.classic import load_classic
+    from msps_render.models.predict import out_paths
+    from msps_render.preview import normal_to_rgb8
+    from msps_render.resources import data_dir
+
+    if method not in ("net", "lambertian"):
+        raise InputError("--method", f"unknown method '{method}' (net or lambertian)")
+    model = load_classic(checkpoint or data_dir("models") / "classic-cpu.pt") if method == "net" else None
+    c = load_capture(folder, lights, need_truth=False)
+    n = (model.normals(c.shots, c.rig.light_dirs, np.asarray(c.rig.crosstalk).T, c.mask) if model is not None
+         else lambertian_ps_rig(c.shots, c.rig, c.mask))
+    paths = out_paths(out)
+    paths["npy"].parent.mkdir(parents=True, exist_ok=True)
+    save_array(paths["npy"], n.astype(np.float32))
+    return [paths["npy"], write_png(paths["png"], normal_to_rgb8(n, c.mask))]
