@@ -20,7 +20,6 @@ from __future__ import annotations
 import json
 import zlib
 from collections import defaultdict
-from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -33,7 +32,8 @@ from msps_render.errors import InputError
 from msps_render.models.metrics import angular_error_deg, error_stats
 from msps_render.models.report import (PER_OBJECT_NOTE, error_histogram, per_object_detail, write_plots,
                                        write_tables)
-from msps_render.models.runner import LAMBERTIAN, Memo, Method, methods as make_methods, resolve_predictors, run
+from msps_render.models.runner import (LAMBERTIAN, FrameFit, Memo, Method, frame_fit, methods as make_methods,
+                                       resolve_predictors, run, run_patches)
 from msps_render.models.steps import DEFAULT_RENDERED, STEPS, Steps
 from msps_render.progress import Bar
 FORMAT = 2  # metrics.json: "methods" + "table"; single-method runs also keep the format-1 keys at the top
@@ -69,21 +69,6 @@ class FrameRow(NamedTuple):
     error_sum: float
 
 
-@dataclass(frozen=True)
-class FrameFit:
-    """What a method's steps found on a whole frame that its patches are scored with: the colour factor
-    on the frame's image ((3,) or (H, W, 3); None: no colour step) and, per `normals`-stage step, its
-    frame value (the refinement's albedo estimate)."""
-
-    scale: np.ndarray | None
-    values: dict
-
-    def factor(self, y: int, x: int, size: int) -> np.ndarray:
-        """The factor of the patch at (y, x): (1, 1, 3) or (size, size, 3)."""
-        s = np.asarray(self.scale)
-        return s[None, None, :] if s.ndim == 1 else s[y:y + size, x:x + size]
-
-
 def frame_pass(frames, methods: list[Method], bar=None) -> tuple[dict, dict, dict]:
     """Every method on every whole frame, sharing work per frame (`Memo`): ({method: [FrameRow]},
     {method: [per-pixel errors per frame]}, {(shard, frame index): [FrameFit per method]})."""
@@ -97,7 +82,7 @@ def frame_pass(frames, methods: list[Method], bar=None) -> tuple[dict, dict, dic
             e = angular_error_deg(s.normals[fr.mask], fr.normal[fr.mask])
             rows[m.name].append(FrameRow(fr.object, float(e.mean()), int(e.size), float(e.sum())))
             errs[m.name].append(e)
-            fs.append(FrameFit(s.scale, {st.name: st.frame(s) for st in m.steps.stage("normals")}))
+            fs.append(frame_fit(m, s))
         fits[(fr.shard, fr.index)] = fs
         if bar:
             bar.advance()
@@ -105,29 +90,13 @@ def frame_pass(frames, methods: list[Method], bar=None) -> tuple[dict, dict, dic
 
 
 def patch_normals(m: Method, j: int, b, fits: list[list[FrameFit]] | None, memo: Memo) -> np.ndarray:
-    """Method `m`'s (B, P, P, 3) normals for one batch: its colour factor and `normals`-stage steps
-    from each patch's frame (`fits[i][j]`), its predictor (wrapped by `predictor`-stage steps) on the
-    patches alone."""
-    image = b["image"]
-    fs = None if fits is None else [f[j] for f in fits]
-    if fs is not None and fs and fs[0].scale is not None:
-        import torch
-
-        P = image.shape[-1]
-        factor = np.stack([f.factor(y, x, P) for f, (y, x) in zip(fs, b["yx"].numpy())])
-        image = image * torch.from_numpy(factor.transpose(0, 3, 1, 2).astype(np.float32))
-    img, mk = image.numpy().transpose(0, 2, 3, 1), b["mask"].numpy()[:, 0] > 0
-    rigs = [Rig(L.numpy(), M.numpy()) for L, M in zip(b["light_dirs"], b["crosstalk"])]
+    """Method `m`'s (B, P, P, 3) normals for one torch batch of patches (`runner.run_patches`)."""
     from msps_render.models.net import rig_matrix  # torch: imported only when patches are scored
 
-    matrices, p = rig_matrix(b["light_dirs"], b["crosstalk"]), m.predictor
-    predict = lambda x, k: memo.call((id(p),), lambda a, c: p.patches(a, c, rigs, matrices), x, k)  # noqa: E731
-    for step in m.steps.stage("predictor"):
-        predict = step.batch(predict, rigs)
-    out = predict(img, mk)
-    for step in m.steps.stage("normals"):
-        out = step.patches(img, out, mk, rigs, [f.values[step.name] for f in fs])
-    return out
+    img, mk = b["image"].numpy().transpose(0, 2, 3, 1), b["mask"].numpy()[:, 0] > 0
+    rigs = [Rig(L.numpy(), M.numpy()) for L, M in zip(b["light_dirs"], b["crosstalk"])]
+    return run_patches(m, img, mk, rigs, rig_matrix(b["light_dirs"], b["crosstalk"]), b["yx"].numpy(),
+                       None if fits is None else [f[j] for f in fits], memo)
 
 
 def frame_errors(data, checkpoint, steps: str = "none") -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -259,3 +259,48 @@ def label(method: Method, state: State) -> str:
 
 __all__ = ["LAMBERTIAN", "NET", "STAGES", "Memo", "Method", "Predictor", "checkpoint_predictor",
            "lambertian_predictor", "methods", "resolve_predictors", "run", "trace", "label"]
+
+
+# ------------------------------------------------------------------ the patch path, beside `run`
+@dataclass(frozen=True)
+class FrameFit:
+    """What a method's steps found on a whole frame that its patches are scored with: the colour factor
+    on the frame's image ((3,) or (H, W, 3); None: no colour step) and, per `normals`-stage step, its
+    frame value (the refinement's albedo estimate)."""
+
+    scale: np.ndarray | None
+    values: dict
+
+    def factor(self, y: int, x: int, size: int) -> np.ndarray:
+        """The factor of the patch at (y, x): (1, 1, 3) or (size, size, 3)."""
+        s = np.asarray(self.scale)
+        return s[None, None, :] if s.ndim == 1 else s[y:y + size, x:x + size]
+
+
+def frame_fit(m: Method, state: State) -> FrameFit:
+    """What `run` found on a whole frame that its patches are scored with (`run_patches`)."""
+    return FrameFit(state.scale, {st.name: st.frame(state) for st in m.steps.stage("normals")})
+
+
+def run_patches(m: Method, images: np.ndarray, masks: np.ndarray, rigs: list[Rig], matrices, yx: np.ndarray,
+                fits: list[FrameFit] | None, memo: Memo) -> np.ndarray:
+    """Method `m` on a batch of patches (B, P, P, 3) cut from whole frames: each patch's colour factor and
+    `normals`-stage values from its frame's `run` (`fits`, one per patch; None: no whole frames), the
+    predictor on the patches alone (wrapped by `predictor`-stage steps), then the `normals` stage.  The
+    second interpreter of the steps that `msps eval` used to carry is this one, next to `run`: every stage
+    is dispatched here through the hooks the registry checks at registration (`steps.Step`)."""
+    img = images
+    if fits is not None and fits and fits[0].scale is not None:
+        P = images.shape[1]
+        factor = np.stack([f.factor(y, x, P) for f, (y, x) in zip(fits, yx)])
+        img = (images * factor.astype(np.float32)).astype(np.float32, copy=False)
+    p = m.predictor
+    predict = lambda x, k: memo.call((id(p),), lambda a, c: p.patches(a, c, rigs, matrices), x, k)  # noqa: E731
+    for step in m.steps.stage("predictor"):
+        predict = step.batch(predict, rigs)
+    out = predict(img, masks)
+    for step in m.steps.stage("normals"):
+        if fits is None:
+            raise InputError(step.name, f"{step.name} takes each patch's value from its whole frame; give whole frames")
+        out = step.patches(img, out, masks, rigs, [f.values[step.name] for f in fits])
+    return out
