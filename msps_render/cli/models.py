@@ -117,7 +117,8 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
              method: List[str] = typer.Option([], metavar="net|lambertian",
                                               help="net (the checkpoints) or lambertian (the baseline); "
                                               "repeatable: --method lambertian beside --checkpoint compares "
-                                              "both (default: net)"),
+                                              "both (default: net). A rig dataset also takes lambertian-robust "
+                                              "(least squares without each pixel's darkest and brightest shots)"),
              max_patches: Optional[int] = typer.Option(None, help="limit per condition"),
              steps: List[str] = _steps_option(True, DEFAULT_RENDERED),
              quiet: bool = typer.Option(False, help="no progress lines"),

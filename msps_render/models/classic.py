@@ -353,7 +353,7 @@ def train_classic(cfg: ClassicConfig, data, val, out, resume: bool = False, prog
                 st.step += 1
                 st.batch_in_epoch = i + 1
                 window_n += len(b["mask"])
-                losses.append(float(loss))
+                losses.append(loss.item())
                 stop = st.step >= t.max_steps or time.perf_counter() - t0 >= budget
                 due = st.step % t.val_every == 0 or time.perf_counter() - last_val > max(budget / 20, 60.0)
                 if stop or due:

@@ -298,7 +298,8 @@ def _layout(cfg: RigConfig, rng: np.random.Generator, source: str) -> tuple[np.n
         D = hemisphere_directions(cfg.n_lights, cfg.slant_range_deg, rng if cfg.sampling == "random" else None)
         E = np.ones_like(D)
     elif cfg.layout == "file":
-        D, E = read_light_file(cfg._file_path(), Path(cfg.intensities_file) if cfg.intensities_file else None)
+        D, E = read_light_file(cfg._file_path(), Path(expand_path(cfg.intensities_file)) if cfg.intensities_file
+                               else None)
     else:  # grid: LEDs on the plane z = plane_distance, centred on the view axis
         g = cfg.grid
         xs = (np.arange(g.cols) - (g.cols - 1) / 2) * g.pitch
