@@ -63,7 +63,8 @@ def _malloc_trim() -> None:
 
     The first call also caps glibc at 2 malloc arenas (M_ARENA_MAX): under CPU
     contention glibc opens a new arena whenever a thread finds the others locked,
-    and each arena keeps its own freed memory (RSS steps of ~20 MiB at random moments).
+    and each arena keeps its own freed memory (RSS steps of ~20 MiB at random moments);
+    and fixes the mmap threshold at 4 MiB (large arrays are mapped and unmapped, never heap).
     """
     global _LIBC
     if _LIBC is None:
@@ -74,6 +75,10 @@ def _malloc_trim() -> None:
             _LIBC = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
             _LIBC.malloc_trim  # noqa: B018 - raises AttributeError off glibc
             _LIBC.mallopt(-8, 2)  # M_ARENA_MAX
+            # M_MMAP_THRESHOLD fixed at 4 MiB: glibc otherwise raises it after each large free (up to 32 MiB),
+            # so a rig's per-frame arrays (19 MB of per-light images at N = 96, the shard's patches) move into
+            # the heap, where fragments of them stay: the worker's floor crept ~50 MiB per shard
+            _LIBC.mallopt(-3, 4 << 20)
         except (OSError, AttributeError):
             _LIBC = False
     if _LIBC:
