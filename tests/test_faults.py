@@ -741,3 +741,16 @@ def test_ctrl_c_while_render_imports_mitsuba_is_one_line_and_130(tmp_path):
     out = tmp_path / "out"
     _assert_interrupted_while_starting(_interrupt_at_import("drjit", ["render", "demo", "--out", str(out), "--quiet"]))
     assert not out.exists()
+
+
+def test_shard_without_its_compression_filter_says_hdf5plugin(tmp_path):
+    """A zstd shard read where the filter plugins are not loaded: the line says what to import (HDF5's own
+    words are about a plugin directory)."""
+    from msps_render.dataset.reader import shard_errors
+    from msps_render.errors import InputError
+
+    p = tmp_path / "shard-00000.h5"
+    with pytest.raises(InputError, match=r"shard-00000\.h5: cannot decode .*hdf5plugin"):
+        with shard_errors(p):
+            raise OSError("Can't synchronously read data (can't open directory (/usr/local/lib/plugin). "
+                          "Please verify its existence)")

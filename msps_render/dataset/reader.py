@@ -23,7 +23,8 @@ def shard_errors(path: str | Path):
     try:
         yield
     except (OSError, KeyError) as e:
-        if "filter" in str(e).lower():  # zstd / Blosc2 chunks without the hdf5plugin filters loaded
+        text = str(e).lower()
+        if "not registered" in text or "can't open directory" in text:  # zstd / Blosc2 without hdf5plugin loaded
             raise InputError(path, f"cannot decode the shard's compressed arrays ({brief(str(e))}): shards are "
                                    "zstd-compressed by default; `pip install hdf5plugin` (msps's readers import it; "
                                    "a plain h5py script needs `import hdf5plugin` first)") from None

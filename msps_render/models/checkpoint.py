@@ -43,10 +43,9 @@ def not_torch_reason(p: Path) -> str | None:
         return "an empty file, not a checkpoint"
     try:
         head.decode("utf-8")
-        kind = "a text file"
     except UnicodeDecodeError:
-        kind = "a binary file"
-    return f"{kind} of {p.stat().st_size} bytes, not a checkpoint (a torch.save archive, e.g. a run's best.pt)"
+        return None  # other binary data: torch's own reason says more
+    return f"a text file of {p.stat().st_size} bytes, not a checkpoint (a torch.save archive, e.g. a run's best.pt)"
 
 
 def load_checkpoint(path: str | Path, expect_preset: str | None = None, map_location: str = "cpu"):
