@@ -154,9 +154,10 @@ class LineTicker:
         if self._bar is not None:
             self._bar.set_postfix_str(text)
 
-    def close(self) -> None:
+    def close(self, ok: bool = True) -> None:
+        """The last line (`ok` False: the loop failed -- its command ends on its one error line instead)."""
         if self._bar is not None:
             self._bar.close()
-        elif self.enabled:
+        elif self.enabled and ok:
             print(self.line(), file=self.stream, flush=True)
         self.enabled = False

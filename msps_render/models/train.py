@@ -415,12 +415,14 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
             planned = min(t_cfg.max_steps, t_cfg.epochs * max(len(loader), 1))  # a time budget may end it sooner
             bar = LineTicker("train", planned, unit="step", start=run.state["step"],
                              budget_s=run.budget - run.state["elapsed"] if run.budget < float("inf") else None)
+        ok = False
         try:
             fit(run, loader, val_loader, log, bar, accel)
             run.checkpoint("last.pt")
+            ok = True
         finally:
-            if bar:  # closed before an error's line is printed, not after it
-                bar.close()
+            if bar:  # closed before an error's line is printed (a failed run: no last progress line)
+                bar.close(ok)
     plot_metrics(out / "metrics.jsonl", out / "metrics.png")
     s = run.state
     batches = max(len(loader), 1)
