@@ -274,7 +274,7 @@ def _render_locked(job: RenderJob) -> dict:
         stopped_by = signal.SIGTERM
     except BaseException:
         with _signals_ignored(main_thread):
-            bar.close()
+            bar.close(ok=False)  # the command ends on its one error line
             _cleanup_failed(out, manifest)
         raise
     finally:
@@ -427,9 +427,9 @@ class _Progress:
             self._lines.note(f"{self.patches} patches, {rate:.0f} patches/s")
             self._lines.update(self.done)
 
-    def close(self) -> None:
+    def close(self, ok: bool = True) -> None:
         if self._lines:
-            self._lines.close()
+            self._lines.close(ok)
             self._lines = None
         if self._p:
             self._p.stop()
