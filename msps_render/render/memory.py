@@ -5,6 +5,13 @@ from __future__ import annotations
 KERNEL_BUDGET = 128  # kernels drjit may add to its in-memory cache between two flushes (~0.15 MiB each)
 
 
+def kernel_budget(n_lights: int) -> int:
+    """The kernel budget of a frame with `n_lights` lights: the one-pass integrator unrolls one shadow ray
+    per light, so its kernels grow with N (~5 MiB at N = 96); the budget shrinks as N grows, keeping the
+    cache's bytes about those of three lights (flushed kernels come back from drjit's disk cache)."""
+    return max(4, KERNEL_BUDGET * 3 // max(3, n_lights))
+
+
 def kernel_cache_misses() -> int:
     """Kernels drjit has added to its in-memory cache in this process so far (compiled by LLVM
     or loaded from its disk cache): `dr.detail.launch_stats()`'s soft + hard misses; 0 without JIT."""
