@@ -32,25 +32,38 @@ def _shape_kind(scene_json: str) -> str:
         return "?"
 
 
+def patch_cover(h) -> tuple[np.ndarray, list[float]]:
+    """(every patch's mask, its object coverage) of an open shard."""
+    msk = h[K.PATCH_MASK][()]
+    return msk, (msk.reshape(len(msk), -1).mean(1).tolist() if len(msk) else [])
+
+
+def frame_labels(h) -> tuple:
+    """(object, materials, condition, scene JSON) per frame of an open shard: what a sample is labelled with."""
+    return tuple(h[k].asstr()[()] for k in (K.FRAME_OBJECT, K.FRAME_MATERIALS, K.FRAME_CONDITION, K.FRAME_SCENE_JSON))
+
+
+def labelled(labels: tuple, image, normal, mask, shard: str, f: int, yx) -> Sample:
+    """A `Sample` of frame `f` with its `frame_labels`."""
+    objs, mats, conds, scenes = labels
+    return Sample(np.asarray(image, np.float32), np.asarray(normal, np.float32), np.asarray(mask, bool), shard,
+                  int(f), yx, _shape_kind(scenes[f]), str(objs[f]), [m for m in str(mats[f]).split(";") if m],
+                  str(conds[f]))
+
+
 def shard_samples(path: str | Path, n: int, rng: np.random.Generator) -> tuple[list[Sample], list[float]]:
     """Up to `n` samples of a shard (its first whole frames if stored, else `n` random patches in
     shard order) and the mask coverage of every patch of the shard."""
     path = Path(path)
     with shard_errors(path), open_shard(path) as h:
-        msk = h[K.PATCH_MASK][()]
+        msk, cover = patch_cover(h)
         N = len(msk)
-        cover = msk.reshape(N, -1).mean(1).tolist() if N else []
         if n <= 0:
             return [], cover
-        objs = h[K.FRAME_OBJECT].asstr()[()]
-        mats = h[K.FRAME_MATERIALS].asstr()[()]
-        conds = h[K.FRAME_CONDITION].asstr()[()]
-        scenes = h[K.FRAME_SCENE_JSON].asstr()[()]
+        labels = frame_labels(h)
 
         def sample(image, normal, mask, f, yx):
-            return Sample(np.asarray(image, np.float32), np.asarray(normal, np.float32), np.asarray(mask, bool),
-                          path.name, int(f), yx, _shape_kind(scenes[f]), str(objs[f]),
-                          [m for m in str(mats[f]).split(";") if m], str(conds[f]))
+            return labelled(labels, image, normal, mask, path.name, f, yx)
 
         out = []
         if n_whole_frames(h):

@@ -18,7 +18,7 @@ from msps_render.dataset.manifest import SHARD_DIR, read_manifest
 from msps_render.errors import InputError
 from msps_render.export import diligent, images, psfcn  # noqa: F401  (each registers its format)
 from msps_render.export.anyrig import export_rig_dataset, is_rig_dataset
-from msps_render.export.formats import FORMATS, ExportFormat, get_format, register  # noqa: F401
+from msps_render.export.formats import FORMATS, ExportFormat, get_format, register, write_frames  # noqa: F401
 from msps_render.export.source import (PER_LIGHT_CONTENTS, PER_LIGHT_SOURCES, ExportFrame, check_has_frames,
                                        dataset_variant, iter_export_frames, sensor_model, stored_per_light,
                                        write_json)
@@ -44,14 +44,9 @@ def export_dataset(root: str | Path, fmt: str, out: str | Path, rerender: bool =
     lights = f.per_light or rerender or missing is None
     check_new_out(out)
     with staged_dir(out) as stage:
-        infos = []
         variant = dataset_variant(root) if rerender else None
-        for i, ef in enumerate(iter_export_frames(root, per_light=lights, variant=variant, rerender=rerender)):
-            info = ef.info()
-            info.update(f.write_frame(ef, stage))
-            infos.append(info)
-            if progress:
-                progress(i, ef)
+        infos = write_frames(iter_export_frames(root, per_light=lights, variant=variant, rerender=rerender),
+                             f.write_frame, stage, progress)
         if f.finish:
             f.finish(stage, infos)
         m = read_manifest(root) or {}

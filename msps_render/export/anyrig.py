@@ -26,6 +26,7 @@ from msps_render.dataset import schema as K
 from msps_render.dataset import load_manifest, open_shard, read_manifest, shard_errors
 from msps_render.dataset.reader import format_version, is_rig_shard, iter_rig_frames, read_rigs
 from msps_render.errors import InputError
+from msps_render.export.formats import write_frames
 from msps_render.export.source import safe_name, sensor_model, write_json
 from msps_render.io.staging import check_new_out, staged_dir
 
@@ -204,13 +205,7 @@ def export_rig_dataset(root: str | Path, f, out: str | Path, rerender: bool = Fa
     check_rig_dataset(root, f.name)
     check_new_out(out)
     with staged_dir(out) as stage:
-        infos = []
-        for i, ef in enumerate(iter_rig_export_frames(root)):
-            info = ef.info()
-            info.update(f.write_rig_frame(ef, stage))
-            infos.append(info)
-            if progress:
-                progress(i, ef)
+        infos = write_frames(iter_rig_export_frames(root), f.write_rig_frame, stage, progress)
         if f.finish:
             f.finish(stage, infos)
         m = read_manifest(root) or {}

@@ -37,3 +37,16 @@ def get_format(name: str) -> ExportFormat:
         raise InputError("--format", f"unknown export format '{name}'{closest(name.lower(), FORMATS)} "
                                      f"(known: {', '.join(FORMATS)})")
     return f
+
+
+def write_frames(frames, write, stage, progress=None) -> list[dict]:
+    """Every frame written by `write(frame, stage)` into `stage`: its `info()` and what the writer returns,
+    one dict per frame (the export index); `progress(i, frame)` hears each."""
+    infos = []
+    for i, ef in enumerate(frames):
+        info = ef.info()
+        info.update(write(ef, stage))
+        infos.append(info)
+        if progress:
+            progress(i, ef)
+    return infos

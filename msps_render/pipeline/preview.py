@@ -211,19 +211,15 @@ def rig_shard_samples(path: str | Path, n: int, rng: np.random.Generator) -> tup
     in shard order) and the mask coverage of every patch of the shard (as `shard_samples`)."""
     from msps_render.dataset import schema as K
     from msps_render.dataset.reader import open_shard, read_rigs, shard_errors
-    from msps_render.dataset.samples import _shape_kind
+    from msps_render.dataset.samples import frame_labels, labelled, patch_cover
 
     path = Path(path)
     with shard_errors(path), open_shard(path) as h:
-        msk = h[K.PATCH_MASK][()]
+        msk, cover = patch_cover(h)
         N = len(msk)
-        cover = msk.reshape(N, -1).mean(1).tolist() if N else []
         if n <= 0:
             return [], cover
-        objs = h[K.FRAME_OBJECT].asstr()[()]
-        mats = h[K.FRAME_MATERIALS].asstr()[()]
-        conds = h[K.FRAME_CONDITION].asstr()[()]
-        scenes = h[K.FRAME_SCENE_JSON].asstr()[()]
+        labels = frame_labels(h)
         rjs = h[K.FRAME_RIG_JSON].asstr()[()]
         _, nominal = read_rigs(h)
         cache: dict[str, np.ndarray] = {}
@@ -237,9 +233,7 @@ def rig_shard_samples(path: str | Path, n: int, rng: np.random.Generator) -> tup
             names = json.loads(rj).get("channel_names", ())
             mask = np.asarray(mask, bool)
             views = rig_views(shots, nominal[f], cache[rj], names)
-            smp = Sample(views[0][1], np.asarray(normal, np.float32), mask, path.name, int(f), yx,
-                         _shape_kind(scenes[f]), str(objs[f]), [m for m in str(mats[f]).split(";") if m],
-                         str(conds[f]))
+            smp = labelled(labels, views[0][1], normal, mask, path.name, f, yx)
             return RigSample(smp, views, nominal[f].describe())
 
         out = []
