@@ -71,3 +71,13 @@ def test_bench_real_writes_lines_before_the_end(tmp_path, lights):
     r = cli(*args, env_extra=ENV)
     assert r.returncode == 0, r.stderr[-2000:]
     assert (1, 2) in progress_lines(r.stderr, "objects"), r.stderr[-1500:]
+
+
+def test_predict_on_a_large_image_writes_lines_before_the_end(tmp_path):
+    """From 512 x 512 px on, `msps predict` reports its network passes tile by tile."""
+    img = tmp_path / "big.npy"
+    np.save(img, np.random.default_rng(0).uniform(0.1, 1.0, (512, 512, 3)).astype(np.float32))
+    r = cli("predict", img, "--out", tmp_path / "out", "--steps", "none", env_extra=ENV)
+    assert r.returncode == 0, r.stderr[-2000:]
+    lines = progress_lines(r.stderr, "big.npy: net")
+    assert any(0 < d < t for d, t in lines) and any(d == t for d, t in lines), r.stderr[-1500:]
