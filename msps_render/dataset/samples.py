@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from msps_render.dataset import schema as K
-from msps_render.dataset.reader import n_whole_frames, open_shard, read_whole_frame, shard_errors
+from msps_render.dataset.reader import open_shard, shard_errors
 
 
 @dataclass
@@ -51,24 +51,21 @@ def labelled(labels: tuple, image, normal, mask, shard: str, f: int, yx) -> Samp
                   str(conds[f]))
 
 
-def shard_samples(path: str | Path, n: int, rng: np.random.Generator) -> tuple[list[Sample], list[float]]:
-    """Up to `n` samples of a shard (its first whole frames if stored, else `n` random patches in
-    shard order) and the mask coverage of every patch of the shard."""
+def pick_samples(path: str | Path, n: int, rng: np.random.Generator, make, whole_key: str = K.FRAME_IMAGE):
+    """Up to `n` samples of a shard (its first whole frames if stored under `whole_key`, else `n` random
+    patches in shard order) and the mask coverage of every patch of the shard.  `make(h, labels)` returns
+    the builder `sample(image, normal, mask, frame, yx)` (three-light samples, rig samples)."""
     path = Path(path)
     with shard_errors(path), open_shard(path) as h:
         msk, cover = patch_cover(h)
         N = len(msk)
         if n <= 0:
             return [], cover
-        labels = frame_labels(h)
-
-        def sample(image, normal, mask, f, yx):
-            return labelled(labels, image, normal, mask, path.name, f, yx)
-
+        sample = make(h, frame_labels(h))
         out = []
-        if n_whole_frames(h):
-            for i in range(min(n_whole_frames(h), n)):
-                out.append(sample(*read_whole_frame(h, i), i, None))
+        if whole_key in h:
+            for i in range(min(len(h[whole_key]), n)):
+                out.append(sample(h[whole_key][i], h[K.FRAME_NORMAL][i], h[K.FRAME_MASK][i].astype(bool), i, None))
         elif N:
             fidx = h[K.PATCH_FRAME_INDEX][()]
             yx = h[K.PATCH_YX][()]
@@ -76,3 +73,10 @@ def shard_samples(path: str | Path, n: int, rng: np.random.Generator) -> tuple[l
                 out.append(sample(h[K.PATCH_IMAGE][i], h[K.PATCH_NORMAL][i], msk[i], fidx[i],
                                   (int(yx[i][0]), int(yx[i][1]))))
         return out, cover
+
+
+def shard_samples(path: str | Path, n: int, rng: np.random.Generator) -> tuple[list[Sample], list[float]]:
+    """Up to `n` samples of a shard and the mask coverage of its patches (`pick_samples`)."""
+    name = Path(path).name
+    return pick_samples(path, n, rng, lambda h, labels: (
+        lambda image, normal, mask, f, yx: labelled(labels, image, normal, mask, name, f, yx)))

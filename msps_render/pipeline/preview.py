@@ -210,16 +210,12 @@ def rig_shard_samples(path: str | Path, n: int, rng: np.random.Generator) -> tup
     """Up to `n` samples of a format-2 shard (its first whole frames if stored, else `n` random patches
     in shard order) and the mask coverage of every patch of the shard (as `shard_samples`)."""
     from msps_render.dataset import schema as K
-    from msps_render.dataset.reader import open_shard, read_rigs, shard_errors
-    from msps_render.dataset.samples import frame_labels, labelled, patch_cover
+    from msps_render.dataset.reader import read_rigs
+    from msps_render.dataset.samples import labelled, pick_samples
 
-    path = Path(path)
-    with shard_errors(path), open_shard(path) as h:
-        msk, cover = patch_cover(h)
-        N = len(msk)
-        if n <= 0:
-            return [], cover
-        labels = frame_labels(h)
+    name = Path(path).name
+
+    def make(h, labels):
         rjs = h[K.FRAME_RIG_JSON].asstr()[()]
         _, nominal = read_rigs(h)
         cache: dict[str, np.ndarray] = {}
@@ -231,22 +227,12 @@ def rig_shard_samples(path: str | Path, n: int, rng: np.random.Generator) -> tup
             if rj not in cache:
                 cache[rj] = display_weights_of(rj)
             names = json.loads(rj).get("channel_names", ())
-            mask = np.asarray(mask, bool)
             views = rig_views(shots, nominal[f], cache[rj], names)
-            smp = labelled(labels, views[0][1], normal, mask, path.name, f, yx)
+            smp = labelled(labels, views[0][1], normal, np.asarray(mask, bool), name, f, yx)
             return RigSample(smp, views, nominal[f].describe())
+        return sample
 
-        out = []
-        if K.FRAME_SHOTS in h:
-            for i in range(min(len(h[K.FRAME_SHOTS]), n)):
-                out.append(sample(h[K.FRAME_SHOTS][i], h[K.FRAME_NORMAL][i], h[K.FRAME_MASK][i], i, None))
-        elif N:
-            fidx = h[K.PATCH_FRAME_INDEX][()]
-            yx = h[K.PATCH_YX][()]
-            for i in sorted(rng.choice(N, size=min(N, n), replace=False)):
-                out.append(sample(h[K.PATCH_IMAGE][i], h[K.PATCH_NORMAL][i], msk[i], fidx[i],
-                                  (int(yx[i][0]), int(yx[i][1]))))
-        return out, cover
+    return pick_samples(path, n, rng, make, whole_key=K.FRAME_SHOTS)
 
 
 def _is_rig_shard(path: Path) -> bool:
