@@ -87,21 +87,16 @@ def load_capture(folder: str | Path, lights: str | int = "all", name: str | None
     return Capture(name, shots, rig, mask, gt, valid, [int(i) + 1 for i in keep], note)
 
 
-def _methods(checkpoints) -> list[tuple[str, object]]:
-    """(name, normals(capture)) per method: each checkpoint, then calibrated least squares (the baseline)."""
+def _methods(checkpoints) -> list[tuple[str, str, object]]:
+    """(name, what, normals(capture)) per method: each checkpoint, then calibrated least squares (the baseline)."""
     from msps_render.models.baseline import lambertian_ps_rig
-    from msps_render.models.classic import load_classic
+    from msps_render.models.runner import classic_predictors
 
-    out = []
-    for spec in checkpoints:
-        name, _, path = spec.rpartition("=")
-        m = load_classic(Path(path))
-        out.append((name or "net", lambda c, m=m: m.normals(c.shots, c.rig.light_dirs, np.asarray(c.rig.crosstalk).T,
-                                                             c.mask)))
-    out.append(("lambertian", lambda c: lambertian_ps_rig(c.shots, c.rig, c.mask)))
-    names = [n for n, _ in out]
-    if len(set(names)) != len(names):
-        raise InputError("--checkpoint", f"method names must differ: {', '.join(names)}")
+    out = [(p.name, p.info["checkpoint"], lambda c, m=p.model: m.normals(c.shots, c.rig.light_dirs,
+                                                                          np.asarray(c.rig.crosstalk).T, c.mask))
+           for p in classic_predictors(checkpoints)]
+    out.append(("lambertian", "calibrated least squares over every photo (Woodham)",
+                lambda c: lambertian_ps_rig(c.shots, c.rig, c.mask)))
     return out
 
 
@@ -127,7 +122,7 @@ def run_bench_real_lights(folders, out: str | Path, checkpoints=(), lights: str 
         for f, n in zip(folders, names):
             c = load_capture(f, lights, n)
             row = {"lights": len(c.used), "pixels": int(c.valid.sum()), "note": c.note}
-            for mname, fn in methods:
+            for mname, _, fn in methods:
                 nrm = fn(c)
                 cos = np.clip((nrm[c.valid] * c.normal_gt[c.valid]).sum(-1) /
                               np.maximum(np.linalg.norm(c.normal_gt[c.valid], axis=-1), 1e-12), -1, 1)
@@ -135,14 +130,12 @@ def run_bench_real_lights(folders, out: str | Path, checkpoints=(), lights: str 
             per[n] = row
             if task:
                 task.advance()
-    mnames = [n for n, _ in methods]
+    mnames = [n for n, _, _ in methods]
     mean = {m: float(np.mean([per[o][m] for o in per])) for m in mnames}
     summary = {"format": FORMAT, "note": VALIDATION_NOTE, "lights": str(lights), "objects": per, "mean_deg": mean,
                "ratio_of_means_to_lambertian": {m: mean[m] / mean["lambertian"] for m in mnames},
                "quirks": {o: per[o]["note"] for o in per if per[o]["note"]},
-               "methods": {n: ("calibrated least squares over every photo (Woodham)" if n == "lambertian" else
-                               dict(s.rpartition("=")[::2] for s in [c for c in checkpoints]).get(n, ""))
-                           for n in mnames}}
+               "methods": {n: what for n, what, _ in methods}}
     with staged_dir(out) as stage:
         (stage / "results.json").write_text(json.dumps(summary, indent=1) + "\n")
         (stage / "results.md").write_text("\n".join(table_lines(summary)) + "\n")

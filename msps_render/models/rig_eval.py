@@ -67,8 +67,11 @@ def resolve_rig_methods(methods=(), checkpoints=()) -> list[RigMethod]:
             raise InputError("--method", f"unknown method '{m}' for a rig dataset (known: "
                                          f"{', '.join(RIG_METHODS)}, net)")
         out.append(RIG_METHODS[m])
-    for c in checkpoints:
-        out.append(checkpoint_method(c))
+    from msps_render.models.runner import classic_predictors
+
+    for p in classic_predictors(checkpoints):
+        out.append(RigMethod(p.name, p.model.predict_frame, {"kind": "network", "checkpoint": p.info["checkpoint"],
+                                                              **p.model.info}))
     if not out:
         out.append(RIG_METHODS["lambertian"])
     names = [m.name for m in out]
@@ -76,16 +79,6 @@ def resolve_rig_methods(methods=(), checkpoints=()) -> list[RigMethod]:
     if dup:
         raise InputError("--method", f"method '{dup[0]}' given twice")
     return out
-
-
-def checkpoint_method(spec: str) -> RigMethod:
-    """A classic (any-light) network checkpoint as a method: `[NAME=]PATH`."""
-    name, _, path = spec.rpartition("=")
-    name = name or "net"
-    from msps_render.models.classic import load_classic
-
-    model = load_classic(Path(path))
-    return RigMethod(name, model.predict_frame, {"kind": "network", "checkpoint": str(path), **model.info})
 
 
 def is_rig_dataset(data: str | Path) -> bool:

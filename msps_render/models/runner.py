@@ -152,6 +152,17 @@ def resolve_predictors(checkpoints=(), kinds=(NET,)) -> list[Predictor]:
     return out
 
 
+def classic_predictors(checkpoints) -> list[Predictor]:
+    """`--checkpoint [NAME=]PATH ...` of classic (any-light) networks, as `resolve_predictors` names and
+    checks them; a dual-cue checkpoint is refused in one line (it reads one three-light image)."""
+    out = resolve_predictors(checkpoints, [NET]) if checkpoints else []
+    for p in out:
+        if p.kind != CLASSIC:
+            raise InputError(p.info.get("checkpoint", p.name), "not an msps classic-network checkpoint (a dual-cue "
+                                                               "one: it reads one three-light image, not N lights)")
+    return out
+
+
 def methods(predictors: list[Predictor], columns: list[Steps], remedy: str = "give a checkpoint or --method net"
             ) -> list[Method]:
     """Every predictor under every steps value (steps-major, the order of the columns given); a step

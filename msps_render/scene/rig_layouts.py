@@ -286,7 +286,7 @@ def hemisphere_directions(n: int, slant_range_deg=(0.0, 70.0), rng: np.random.Ge
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
-def _layout(cfg: RigConfig, rng: np.random.Generator, source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _layout(cfg: RigConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(directions (N, 3), positions (N, 3) or NaN rows, relative intensities (N, 3)) of the nominal layout."""
     if cfg.layout == "three":
         D = np.stack([_slant_tilt_dir(cfg.slant_deg, t) for t in cfg.tilts_deg])
@@ -325,7 +325,7 @@ def sample_rig(cfg: RigConfig, rng: np.random.Generator, source: str = "scene.ri
     """(true LightSpecs, RigSpec) of one frame.  Draws from `rng` only what the config asks for, in a
     fixed order: random hemisphere directions, then per light direction jitter, intensity, colour."""
 
-    D, P, E = _layout(cfg, rng, source)
+    D, P, E = _layout(cfg, rng)
     n = len(D)
     if cfg.layout == "file":
         try:
