@@ -142,7 +142,9 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
         if steps or any((selfcal, segments, netcal, mirror, refine)):
             raise InputError("--steps", f"{data} is a rig dataset: the test-time steps belong to the three-light "
                                         "dual-cue network")
-        r = rig_eval.evaluate_rig(data, out, rig_eval.resolve_rig_methods(method, checkpoint), progress=not quiet)
+        r = rig_eval.evaluate_rig(data, out, rig_eval.resolve_rig_methods(method, checkpoint,
+                                                                           rig_eval.classic_reads(data)),
+                                  progress=not quiet)
         typer.echo("\n".join(rig_eval.summary_lines(r)))
         typer.echo("wrote " + ", ".join(r["files"]))
         return

@@ -94,7 +94,7 @@ def _methods(checkpoints) -> list[tuple[str, str, object]]:
 
     out = [(p.name, p.info["checkpoint"], lambda c, m=p.model: m.normals(c.shots, c.rig.light_dirs,
                                                                           np.asarray(c.rig.crosstalk).T, c.mask))
-           for p in classic_predictors(checkpoints)]
+           for p in classic_predictors(checkpoints, default=True)]
     out.append(("lambertian", "calibrated least squares over every photo (Woodham)",
                 lambda c: lambertian_ps_rig(c.shots, c.rig, c.mask)))
     return out
@@ -169,11 +169,11 @@ def predict_folder(folder: str | Path, out: str | Path, checkpoint: str | Path |
     from msps_render.models.classic import load_classic
     from msps_render.models.predict import out_paths
     from msps_render.preview import normal_to_rgb8
-    from msps_render.resources import data_dir
+    from msps_render.models.runner import default_classic_checkpoint
 
     if method not in ("net", "lambertian"):
         raise InputError("--method", f"unknown method '{method}' (net or lambertian)")
-    model = load_classic(checkpoint or data_dir("models") / "classic-cpu.pt") if method == "net" else None
+    model = load_classic(checkpoint or default_classic_checkpoint()) if method == "net" else None
     c = load_capture(folder, lights, need_truth=False)
     n = (model.normals(c.shots, c.rig.light_dirs, np.asarray(c.rig.crosstalk).T, c.mask) if model is not None
          else lambertian_ps_rig(c.shots, c.rig, c.mask))

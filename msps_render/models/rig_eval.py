@@ -56,9 +56,10 @@ RIG_METHODS: dict[str, RigMethod] = {
 }
 
 
-def resolve_rig_methods(methods=(), checkpoints=()) -> list[RigMethod]:
-    """`--method NAME` (a registry entry) and `--checkpoint [NAME=]PATH` (a classic network) -> methods;
-    default: the baseline, plus every checkpoint given."""
+def resolve_rig_methods(methods=(), checkpoints=(), classic_fits: bool = False) -> list[RigMethod]:
+    """`--method NAME` (a registry entry, or net) and `--checkpoint [NAME=]PATH` (a classic network) ->
+    methods.  Nothing given: the baseline, and the shipped classic network when the rig is one it reads
+    (`classic_fits`: one image per light, far lights, three channels); `--method net` alone: the shipped one."""
     out = []
     for m in methods:
         if m == "net":
@@ -69,16 +70,35 @@ def resolve_rig_methods(methods=(), checkpoints=()) -> list[RigMethod]:
         out.append(RIG_METHODS[m])
     from msps_render.models.runner import classic_predictors
 
-    for p in classic_predictors(checkpoints):
+    default = ("net" in methods or (not methods and classic_fits)) and not checkpoints
+    for p in classic_predictors(checkpoints, default=default):
         out.append(RigMethod(p.name, p.model.predict_frame, {"kind": "network", "checkpoint": p.info["checkpoint"],
                                                               **p.model.info}))
-    if not out:
-        out.append(RIG_METHODS["lambertian"])
+    if not methods:
+        out.insert(0, RIG_METHODS["lambertian"])
     names = [m.name for m in out]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise InputError("--method", f"method '{dup[0]}' given twice")
     return out
+
+
+def classic_reads(data: str | Path) -> bool:
+    """Whether the classic network reads this rig dataset (its first frame's rig): one image per light, far
+    lights, three channels."""
+    from msps_render.dataset import load_manifest
+    from msps_render.dataset.reader import open_shard, read_rigs, shard_errors
+
+    man = load_manifest(Path(data), need_complete=False)
+    for e in man.shards_of():
+        p = man.shard_path(e.name)
+        if p.exists():
+            with shard_errors(p), open_shard(p) as h:
+                _, nominal = read_rigs(h)
+            r = nominal[0]
+            return (r.shot_list == tuple((k,) for k in range(r.n_lights)) and not r.has_point_lights
+                    and r.n_channels == 3)
+    return False
 
 
 def is_rig_dataset(data: str | Path) -> bool:

@@ -152,9 +152,20 @@ def resolve_predictors(checkpoints=(), kinds=(NET,)) -> list[Predictor]:
     return out
 
 
-def classic_predictors(checkpoints) -> list[Predictor]:
+def default_classic_checkpoint() -> Path:
+    """The classic (any-light) network shipped in models/ (docs/history.md stage 15)."""
+    p = data_dir("models") / "classic-cpu.pt"
+    if not p.is_file():
+        raise InputError(p, "no shipped classic checkpoint; pass --checkpoint")
+    return p
+
+
+def classic_predictors(checkpoints, default: bool = False) -> list[Predictor]:
     """`--checkpoint [NAME=]PATH ...` of classic (any-light) networks, as `resolve_predictors` names and
-    checks them; a dual-cue checkpoint is refused in one line (it reads one three-light image)."""
+    checks them (`default`: the shipped one when none is given); a dual-cue checkpoint is refused in one
+    line (it reads one three-light image)."""
+    if not checkpoints and default:
+        checkpoints = [f"{CLASSIC}={default_classic_checkpoint()}"]
     out = resolve_predictors(checkpoints, [NET]) if checkpoints else []
     for p in out:
         if p.kind != CLASSIC:
