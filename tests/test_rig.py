@@ -435,3 +435,17 @@ def test_sensor_model_records_every_shot(rgb_variant):
     levels = g.shots * exp * 255
     assert np.allclose(levels, np.round(levels), atol=1e-3)  # 8-bit codes
     assert not np.array_equal(g.shots, f.shots) and np.abs(g.shots - np.minimum(f.shots, 1 / exp)).max() <= 0.5 / 255 / exp + 1e-6
+
+
+@pytest.mark.parametrize("text,why", [("0.1 0.2\n", "2 columns"), ("0.6 0 -0.8\n", "below the horizon")])
+def test_render_with_a_bad_light_file_is_one_line_and_writes_nothing(tmp_path, text, why):
+    from cli_helpers import cli, one_line_error
+
+    lights = tmp_path / "light_directions.txt"
+    lights.write_text(text)
+    cfg = tmp_path / "lab.toml"
+    cfg.write_text(f'[dataset]\nn_shards = 1\nframes_per_shard = 1\n[scene.rig]\nlayout = "file"\nfile = "{lights}"\n')
+    r = cli("render", cfg, "--out", tmp_path / "out")
+    line = one_line_error(r)
+    assert "light_directions.txt" in line and why in line
+    assert not (tmp_path / "out").exists()
