@@ -438,8 +438,8 @@ class ClassicModel:
 
 def is_classic_checkpoint(path: str | Path) -> bool:
     """True for a readable checkpoint of this network (others are left to their own loader's errors)."""
-    try:
-        ck = torch.load(Path(path), map_location="cpu", weights_only=True)
+    try:  # memory-mapped: the format key is read without loading the weights a second time
+        ck = torch.load(Path(path), map_location="cpu", weights_only=True, mmap=True)
     except Exception:
         return False
     return isinstance(ck, dict) and ck.get("format") == FORMAT
