@@ -754,3 +754,24 @@ def test_shard_without_its_compression_filter_says_hdf5plugin(tmp_path):
         with shard_errors(p):
             raise OSError("Can't synchronously read data (can't open directory (/usr/local/lib/plugin). "
                           "Please verify its existence)")
+
+
+def test_ctrl_c_inside_a_drjit_custom_op_is_still_an_interrupt():
+    """A Ctrl-C that lands inside `mi.render` arrives as drjit's RuntimeError caused by the
+    KeyboardInterrupt: the render stops as interrupted (130, shards kept), not with a traceback."""
+    import signal
+
+    from msps_render.pipeline.run import _stopped_by, _Terminated
+
+    def wrapped(inner):
+        try:
+            try:
+                raise inner
+            except BaseException as k:
+                raise RuntimeError("drjit.custom(<_RenderOp>): error while performing a custom operation") from k
+        except RuntimeError as e:
+            return e
+
+    assert _stopped_by(wrapped(KeyboardInterrupt())) == signal.SIGINT
+    assert _stopped_by(wrapped(_Terminated())) == signal.SIGTERM
+    assert _stopped_by(wrapped(ValueError("a real error"))) is None

@@ -268,15 +268,13 @@ def _render_locked(job: RenderJob) -> dict:
             run_dask(todo, ws, scheduler, workers, on_done)
         else:
             run_local(todo, ws, workers, on_done, recycle_after=job.recycle_after)
-    except KeyboardInterrupt:
-        stopped_by = signal.SIGINT
-    except _Terminated:
-        stopped_by = signal.SIGTERM
-    except BaseException:
-        with _signals_ignored(main_thread):
-            bar.close(ok=False)  # the command ends on its one error line
-            _cleanup_failed(out, manifest)
-        raise
+    except BaseException as e:
+        stopped_by = _stopped_by(e)
+        if stopped_by is None:
+            with _signals_ignored(main_thread):
+                bar.close(ok=False)  # the command ends on its one error line
+                _cleanup_failed(out, manifest)
+            raise
     finally:
         bar.close()
         if main_thread:
@@ -393,6 +391,21 @@ def _signals_ignored(main_thread: bool):
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def _stopped_by(e: BaseException):
+    """The signal behind an exception (SIGINT, SIGTERM) or None.  Why the chain: a Ctrl-C that lands inside
+    `mi.render` reaches us as drjit's RuntimeError ("error while performing a custom operation") with the
+    KeyboardInterrupt as its cause, which a plain `except KeyboardInterrupt` missed (a traceback, exit 1)."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, KeyboardInterrupt):
+            return signal.SIGINT
+        if isinstance(e, _Terminated):
+            return signal.SIGTERM
+        e = e.__cause__ or e.__context__
+    return None
 
 
 class _Progress:
