@@ -373,8 +373,8 @@ def print_memory(mem: dict, a) -> bool:
         print(f"at the highest render-stage end ({ph['smaps']['rss']:.0f} MiB): " + ", ".join(
             f"{k} {v:.0f}" for k, v in ph["smaps"]["groups"]))
         print(f"one shard's patches: {ph['patches']} patches x {ph['images']} images x 32x32x3 float32 = "
-              f"{ph['patch_mib']:.1f} MiB held until the shard is written (then concatenated: a second copy, and "
-              f"cast to {ph['storage']}); film: {ph['film_channels']} channels x 128x128 float32 = "
+              f"{ph['patch_mib']:.1f} MiB (held as {ph['storage']} from the frame that cut them until the shard "
+              f"is written, block by block); film: {ph['film_channels']} channels x 128x128 float32 = "
               f"{ph['film_mib']:.1f} MiB; one frame of this N on a fresh scene: {ph['render_detail']}")
     return ok
 
@@ -484,7 +484,7 @@ class MemoryHook:
             _reset_peak()
 
     def end_frame(self, extra=None) -> dict:
-        self._close_gap("shard concat + HDF5 write (after its last frame)")
+        self._close_gap("shard write (after its last frame)")
         _reset_peak()
         self.frames.append({})
         self.frame += 1
@@ -546,8 +546,8 @@ def phases_child(a) -> None:
 
 
 def _render_detail(cfg, a) -> tuple[str, int]:
-    """RSS steps of one render of this N on a fresh scene: `mi.render` (film + kernel launch), the
-    developed film read back (`film.bitmap()` + numpy), the per-light images."""
+    """RSS steps of one render of this N on a fresh scene: `mi.render` (film + kernel launch + the
+    developed film it returns), the per-light images read from it."""
     import drjit as dr
 
     from msps_render.render.multilight import read_emitter_images
@@ -562,19 +562,16 @@ def _render_detail(cfg, a) -> tuple[str, int]:
     for rep in range(2):
         _reset_peak()
         r0 = _kib("VmRSS")
-        mi.render(scene, sensor=sensor, spp=spec.integrator.spp, seed=rep)
+        image = mi.render(scene, sensor=sensor, spp=spec.integrator.spp, seed=rep)
         dr.sync_thread()
         r1, h1 = _kib("VmRSS"), _kib("VmHWM")
         _reset_peak()
-        bmp = sensor.film().bitmap()
-        arr = np.array(bmp, dtype=np.float32, copy=False)
+        imgs = read_emitter_images(image, scene.integrator().aov_names(), emitter_ids(spec))
         r2, h2 = _kib("VmRSS"), _kib("VmHWM")
-        imgs = read_emitter_images(sensor.film(), emitter_ids(spec))
-        r3 = _kib("VmRSS")
-        channels = int(arr.shape[-1])
-        out.append(f"render {rep + 1}: mi.render peak {h1 - r0:+.0f} kept {r1 - r0:+.0f}, film bitmap "
-                   f"{arr.shape[-1]} ch peak {h2 - r1:+.0f} kept {r2 - r1:+.0f}, per-light read {r3 - r2:+.0f} MiB")
-        del bmp, arr, imgs
+        channels = int(image.shape[-1])
+        out.append(f"render {rep + 1}: mi.render (the developed film, {channels} ch) peak {h1 - r0:+.0f} kept "
+                   f"{r1 - r0:+.0f}, per-light read peak {h2 - r1:+.0f} kept {r2 - r1:+.0f} MiB")
+        del image, imgs
     return "; ".join(out), channels
 
 

@@ -7,12 +7,17 @@ from pathlib import Path
 import numpy as np
 
 
-def array_digest(arr: np.ndarray) -> str:
-    """Checksum of an array's values (dtype + shape + bytes)."""
+def array_digest(arr) -> str:
+    """Checksum of an array's values (dtype + shape + bytes); a `RowBlocks` hashes its blocks in turn
+    (the same bytes as its concatenation, without making it)."""
     h = hashlib.sha256()
-    a = np.ascontiguousarray(arr)
-    h.update(f"{a.dtype.str}{a.shape}".encode())
-    h.update(memoryview(a).cast("B") if a.size else b"")  # the same bytes as tobytes(), without a copy
+    blocks = getattr(arr, "blocks", None)
+    if blocks is None:
+        blocks = [np.ascontiguousarray(arr)]
+    h.update(f"{np.dtype(arr.dtype).str}{tuple(arr.shape)}".encode())
+    for b in blocks:
+        b = np.ascontiguousarray(b)
+        h.update(memoryview(b).cast("B") if b.size else b"")  # the same bytes as tobytes(), without a copy
     return h.hexdigest()
 
 

@@ -77,10 +77,59 @@ def split_key(key: str) -> tuple[str, str]:
 
 
 @dataclass
+class RowBlocks:
+    """One array kept as the row blocks it was built from (a shard's patch images: one block per frame),
+    written and checksummed block by block (`dataset/writer.py`, `digest.array_digest`).
+    Why: concatenating a shard's patches held them twice at its write, ~60 MB at 96 images per patch;
+    `np.asarray` still gives the whole array when a caller needs one."""
+
+    blocks: list[np.ndarray]
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return (sum(len(b) for b in self.blocks),) + self.blocks[0].shape[1:]
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self.blocks[0].dtype
+
+    @property
+    def ndim(self) -> int:
+        return self.blocks[0].ndim
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, rows: slice) -> np.ndarray:
+        """Rows `start:stop` as one array (only that slice is copied)."""
+        start, stop, step = rows.indices(len(self))
+        if step != 1:
+            raise IndexError("RowBlocks takes contiguous row slices only")
+        out, at = [], 0
+        for b in self.blocks:
+            lo, hi = max(start - at, 0), min(stop - at, len(b))
+            if lo < hi:
+                out.append(b[lo:hi])
+            at += len(b)
+        return np.concatenate(out) if out else np.zeros((0,) + self.shape[1:], self.dtype)
+
+    def astype(self, dtype, copy: bool = True) -> "RowBlocks":
+        return RowBlocks([b.astype(dtype, copy=copy) for b in self.blocks])
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        a = np.concatenate(self.blocks)
+        return a if dtype is None else a.astype(dtype, copy=False)
+
+
+@dataclass
 class Patches:
     """Fixed-size windows of frames (the rows of `patches/*`)."""
 
-    image: np.ndarray  # (N, P, P, 3) float32
+    image: np.ndarray | RowBlocks  # (N, P, P, 3) float32, or (N, S, P, P, M) for any rig
     normal: np.ndarray  # (N, P, P, 3) float32
     mask: np.ndarray  # (N, P, P) uint8
     yx: np.ndarray  # (N, 2) int32, top-left corner in the frame
@@ -99,7 +148,8 @@ class Patches:
         if not parts:
             return cls.empty(size)
         points = np.concatenate([p.points for p in parts]) if all(p.points is not None for p in parts) else None
-        return cls(image=np.concatenate([p.image for p in parts]), normal=np.concatenate([p.normal for p in parts]),
+        image = RowBlocks([p.image for p in parts if len(p)] or [parts[0].image])  # not concatenated: see RowBlocks
+        return cls(image=image, normal=np.concatenate([p.normal for p in parts]),
                    mask=np.concatenate([p.mask for p in parts]), yx=np.concatenate([p.yx for p in parts]),
                    points=points)
 

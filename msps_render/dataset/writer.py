@@ -15,7 +15,7 @@ import numpy as np
 from msps_render.atomic import atomic_write
 from msps_render.dataset import schema as K
 from msps_render.dataset.digest import array_digest, file_digest
-from msps_render.dataset.schema import ShardContent
+from msps_render.dataset.schema import RowBlocks, ShardContent
 
 
 def filter_kwargs(compression: str) -> dict:
@@ -42,12 +42,23 @@ def filter_kwargs(compression: str) -> dict:
     raise ValueError(f"compression must be one of {K.COMPRESSIONS}, got {compression!r}")
 
 
-def create_array(group, name: str, data: np.ndarray, compression: str, chunks=None):
-    """One numeric dataset with the shard's filters (`filter_kwargs`); empty and scalar arrays unfiltered."""
+def create_array(group, name: str, data, compression: str, chunks=None):
+    """One numeric dataset with the shard's filters (`filter_kwargs`); empty and scalar arrays unfiltered.
+    A `RowBlocks` (a shard's patch images) is written a chunk's rows at a time: the same bytes as one
+    write of the whole array (tested), without ever holding it whole."""
     kw = {"track_times": False}
     if data.size > 0 and data.ndim >= 1:
         kw.update(filter_kwargs(compression), chunks=chunks or True)
-    return group.create_dataset(name, data=data, **kw)
+    if not isinstance(data, RowBlocks):
+        return group.create_dataset(name, data=data, **kw)
+    if data.size == 0:
+        return group.create_dataset(name, data=np.asarray(data), **kw)
+    # No chunk cache: each chunk goes to the file as it is written, in order, as a one-shot write puts them
+    ds = group.create_dataset(name, shape=data.shape, dtype=data.dtype, rdcc_nbytes=0, **kw)
+    step = ds.chunks[0]
+    for start in range(0, len(data), step):
+        ds[start:start + step] = data[start:start + step]
+    return ds
 
 
 def shard_arrays(content: ShardContent, image_dtype: str = "float16", normal_dtype: str = "float16"

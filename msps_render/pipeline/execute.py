@@ -28,7 +28,7 @@ from msps_render.patches import patchify
 from msps_render.pipeline.config import DatasetConfig
 from msps_render.pipeline.plan import Task, frame_rngs, frame_seed, sensor_rng
 from msps_render.render import render_frame
-from msps_render.render.memory import kernel_budget, kernel_cache_misses, release_frame_memory
+from msps_render.render.memory import frame_budget, kernel_cache_misses, release_frame_memory
 from msps_render.render.pool import ScenePool
 from msps_render.render.sensor import apply_sensor
 from msps_render.render.variant import activate, mitsuba_info
@@ -97,7 +97,9 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
         pats.append(p)
         fidx.append(np.full(len(p), j, np.int32))
         with stage(timer, "release memory"):
-            release_frame_memory(misses0, kernel_budget(len(spec.lights)))  # flat worker memory, kernels kept for the next scene (docs/benchmarks.md)
+            budget = frame_budget(len(spec.lights))  # flat worker memory, kernels kept for the next scene (docs/benchmarks.md)
+            scenes.trim(budget.scenes)
+            release_frame_memory(misses0, budget)
         env = spec.environment
         with stage(timer, "frame record"):
             frames.append(FrameRecord(

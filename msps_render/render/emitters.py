@@ -30,8 +30,8 @@ def render_emitters_one_pass(mi, scene, ids: list[str], spp: int, seed: int, sen
     if list(getattr(integrator, "emitter_ids", ())) != list(ids):
         raise RuntimeError(f"the scene's integrator is not msps_multilight over emitters {ids}: {integrator}")
     sensor = sensor if sensor is not None else scene.sensors()[0]
-    mi.render(scene, sensor=sensor, spp=spp, seed=seed)
-    return read_emitter_images(sensor.film(), ids)
+    image = mi.render(scene, sensor=sensor, spp=spp, seed=seed)
+    return read_emitter_images(image, integrator.aov_names(), ids)
 
 
 def render_emitters_separately(mi, scene, spec: SceneSpec) -> list[np.ndarray]:

@@ -2,14 +2,38 @@
 from __future__ import annotations
 
 
+from dataclasses import dataclass
+
 KERNEL_BUDGET = 128  # kernels drjit may add to its in-memory cache between two flushes (~0.15 MiB each)
 
 
-def kernel_budget(n_lights: int) -> int:
-    """The kernel budget of a frame with `n_lights` lights: the one-pass integrator unrolls one shadow ray
-    per light, so its kernels grow with N (~5 MiB at N = 96); the budget shrinks as N grows, keeping the
-    cache's bytes about those of three lights (flushed kernels come back from drjit's disk cache)."""
-    return max(4, KERNEL_BUDGET * 3 // max(3, n_lights))
+@dataclass(frozen=True)
+class MemoryBudget:
+    """What a worker keeps cached from one frame to the next: drjit kernels added between two flushes,
+    measured tables kept mapped, loaded scenes (`render/pool.py`) and bytes of canonical meshes
+    (`scene/shapes.py`); None: that cache's own limit ($MSPS_TABLE_CACHE, 16 scenes, 32 MiB)."""
+
+    kernels: int = KERNEL_BUDGET
+    tables: int | None = None
+    scenes: int | None = None
+    mesh_bytes: int | None = None
+
+
+def frame_budget(n_lights: int) -> MemoryBudget:
+    """The budget after a frame with `n_lights` lights.  Why it shrinks as N grows: a frame's own
+    memory (film, N images, the shard's N-image patches) grows with N, so what is kept between frames
+    must shrink for a worker to stay within its memory at N = 96 (docs/benchmarks.md "Any rig").
+    The one-pass integrator unrolls one shadow ray per light, so its kernels grow with N (~5 MiB at
+    N = 96): the kernel budget keeps the cache's bytes about those of three lights (flushed kernels
+    come back from drjit's disk cache).  A measured table is 16.7 MiB of every worker's RSS while
+    mapped, and mapping it again costs ~1 ms (page cache shared by the workers): beyond three lights
+    only 2 stay mapped.  Pooled scenes (~3 MB) and canonical meshes (~0.7 MB) save a BVH build or a
+    mesh generation (tens of ms) when a shape comes back, a small share of a many-light frame, and
+    presets such as `classic-train` draw a new shape every frame.  Three-light frames keep today's
+    budget.  Pixels never depend on any of it (tests/test_pool.py, test_scale_memory.py)."""
+    if n_lights <= 3:
+        return MemoryBudget()
+    return MemoryBudget(kernels=max(4, KERNEL_BUDGET * 3 // n_lights), tables=2, scenes=2, mesh_bytes=4 << 20)
 
 
 def kernel_cache_misses() -> int:
@@ -24,7 +48,7 @@ def kernel_cache_misses() -> int:
         return 0
 
 
-def release_frame_memory(misses_before: int | None = None, budget: int = KERNEL_BUDGET) -> None:
+def release_frame_memory(misses_before: int | None = None, budget: MemoryBudget = MemoryBudget()) -> None:
     """Free what a finished frame left behind; pipeline workers call it after every frame.
 
     Two sources of unbounded worker growth, both outside our code
@@ -45,15 +69,26 @@ def release_frame_memory(misses_before: int | None = None, budget: int = KERNEL_
     every frame threw away exactly what the next frame needs.  With
     `misses_before` (`kernel_cache_misses()` at the start of the frame) it is
     flushed only when the running count of kernels added to it crosses a
-    multiple of `budget` during this frame, so it never holds more than `budget`
-    plus one frame's kernels (~20 MiB) and memory stays bounded.  Without
+    multiple of `budget.kernels` during this frame, so it never holds more than that
+    plus one frame's kernels (~20 MiB) and memory stays bounded.  `budget.tables`,
+    `budget.mesh_bytes`: measured tables and canonical meshes kept (`frame_budget`; the worker's
+    scene pool is trimmed by its owner, `pipeline/execute.py`).  Without
     `misses_before` it is flushed every time (the old behaviour).
     """
     import gc
 
     import drjit as dr
 
-    flush_kernels = misses_before is None or kernel_cache_misses() // budget > misses_before // budget
+    if budget.tables is not None:  # before the collection, so unmapped tables leave with this frame's scene
+        from msps_render.render.merl_bsdf import device_table
+
+        device_table.trim(budget.tables)
+    if budget.mesh_bytes is not None:
+        from msps_render.scene.shapes import trim_canonical_cache
+
+        trim_canonical_cache(budget.mesh_bytes)
+    k = budget.kernels
+    flush_kernels = misses_before is None or kernel_cache_misses() // k > misses_before // k
     gc.collect(2 if flush_kernels else 1)
     try:
         dr.sync_thread()

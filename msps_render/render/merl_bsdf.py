@@ -139,6 +139,11 @@ class TableCache:
         self._tables[key] = entry
         return entry
 
+    def trim(self, keep: int) -> None:
+        """Keep only the `keep` most recently used tables (`render/memory.py` `frame_budget`)."""
+        while len(self._tables) > max(0, keep):
+            self._tables.popitem(last=False)
+
     def cache_info(self) -> CacheInfo:
         return CacheInfo(self.hits, self.misses, table_cache_size(), len(self._tables))
 

@@ -425,13 +425,19 @@ def register(variant: str | None = None) -> str:
 _REGISTERED: set[str] = set()
 
 
-def read_emitter_images(film, emitter_ids: Sequence[str]) -> np.ndarray:
-    """Every emitter's image, read by AOV channel name from the developed film, as ONE (K, H, W, C) float32
-    array (image k = emitter k; C = 3, or M when the integrator wrote M != 3 camera channels `<id>.C0 ..`).
-    Why one block: with 96 lights each extra copy of the per-light images is 19 MB of a worker's peak."""
-    bmp = film.bitmap()
-    names = [f.name for f in bmp.struct_()]
-    data = np.array(bmp, dtype=np.float32, copy=False)
+def read_emitter_images(image, aov_names: Sequence[str], emitter_ids: Sequence[str]) -> np.ndarray:
+    """Every emitter's image, read by AOV channel name from the developed film (the tensor `mi.render`
+    returns: the film's base channels, then `aov_names`), as ONE (K, H, W, C) float32 array (image k =
+    emitter k; C = 3, or M when the integrator wrote M != 3 camera channels `<id>.C0 ..`).
+    Why the tensor and not `film.bitmap()`: the same float32 values (tested), without developing the
+    film twice (with 96 lights a bitmap is two more 291-channel copies, ~50 MB of a worker's peak); and
+    one block: each extra copy of the per-light images is 19 MB."""
+    data = np.array(image, dtype=np.float32, copy=False)
+    aovs = list(aov_names)
+    base = data.shape[-1] - len(aovs)
+    if base < 0:
+        raise RuntimeError(f"film has {data.shape[-1]} channels, fewer than the integrator's {len(aovs)} AOVs")
+    names = [f"_base{i}" for i in range(base)] + aovs
     cols = []
     for e in emitter_ids:
         m = 0
@@ -440,7 +446,7 @@ def read_emitter_images(film, emitter_ids: Sequence[str]) -> np.ndarray:
         try:
             cols.append([names.index(c) for c in (channel_names(e, m) if m and m != 3 else channel_names(e))])
         except ValueError:
-            raise RuntimeError(f"film has no channels for emitter '{e}' (channels: {names})") from None
+            raise RuntimeError(f"film has no channels for emitter '{e}' (channels: {aovs})") from None
     if len({len(c) for c in cols}) > 1:
         raise RuntimeError(f"emitters wrote different numbers of channels: {[len(c) for c in cols]}")
     out = np.empty((len(cols),) + data.shape[:2] + (len(cols[0]) if cols else 3,), np.float32)

@@ -92,6 +92,12 @@ class ScenePool:
     def clear(self) -> None:
         self._scenes.clear()
 
+    def trim(self, keep: int | None) -> None:
+        """Keep only the `keep` most recently used scenes (None: `max_scenes`; `render/memory.py`)."""
+        limit = self.max_scenes if keep is None else max(0, keep)
+        while len(self._scenes) > limit:
+            self._scenes.popitem(last=False)
+
     @contextmanager
     def frame(self, spec: SceneSpec, mi, timer: StageTimer | None = None) -> Iterator[PooledScene]:
         """The pooled scene set up for `spec` (built on first use); its BSDFs are released after."""
@@ -119,8 +125,7 @@ class ScenePool:
             pooled = _build(mi, spec, v, f, n, self._blank)
         self._scenes[key] = pooled
         self.built += 1
-        while len(self._scenes) > self.max_scenes:
-            self._scenes.popitem(last=False)
+        self.trim(None)
         return pooled
 
 

@@ -207,9 +207,15 @@ def _canonical_cached(kind: str, name: str, sh_coeffs: tuple, subdivisions: int,
     for a in (v, f):
         a.setflags(write=False)
     _CANONICAL[key] = (v, f, uv)
-    while len(_CANONICAL) > 1 and sum(a.nbytes for m in _CANONICAL.values() for a in m[:2]) > CANONICAL_CACHE_BYTES:
-        _CANONICAL.popitem(last=False)
+    trim_canonical_cache(CANONICAL_CACHE_BYTES, keep=1)
     return v, f, uv
+
+
+def trim_canonical_cache(max_bytes: int, keep: int = 0) -> None:
+    """Drop least recently used canonical meshes until the cache holds at most `max_bytes` (or only
+    `keep` meshes); `render/memory.py` shrinks it after frames of many lights."""
+    while len(_CANONICAL) > keep and sum(a.nbytes for m in _CANONICAL.values() for a in m[:2]) > max_bytes:
+        _CANONICAL.popitem(last=False)
 
 
 # ------------------------------------------------------------------- parts
