@@ -35,6 +35,7 @@ class Frame:
     meta: dict = field(default_factory=dict)
     shots: np.ndarray | None = None  # (S, H, W, M) the rig's camera images (rig scenes: `spec.rig`)
     points: np.ndarray | None = None  # (H, W, 3) surface point per pixel, camera frame (rigs with near lights)
+    shadow: np.ndarray | None = None  # (L, H, W) uint8 per light: 0 lit, 1 attached, 2 cast (`render.shadows`)
 
     def __post_init__(self) -> None:
         H, W = self.mask.shape

@@ -51,5 +51,7 @@ def patchify(frame: Frame, size: int = 40, stride: int = 20, min_coverage: float
         image = frame.image[sel].astype(np.float32)
     points = getattr(frame, "points", None)
     points = points[sel].astype(np.float32) if points is not None else None
+    shadow = getattr(frame, "shadow", None)  # (L, H, W) -> (n, L, P, P)
+    shadow = np.moveaxis(shadow[(slice(None),) + sel], 0, 1).astype(np.uint8) if shadow is not None else None
     return Patches(image=image, normal=frame.normal[sel].astype(np.float32),
-                   mask=frame.mask[sel].astype(np.uint8), yx=keep.astype(np.int32), points=points)
+                   mask=frame.mask[sel].astype(np.uint8), yx=keep.astype(np.int32), points=points, shadow=shadow)

@@ -250,23 +250,25 @@ def iter_rig_frames(path: str | Path) -> Iterator[RigFrame]:
         conds = h[K.FRAME_CONDITION].asstr()[()]
         rjs = h[K.FRAME_RIG_JSON].asstr()[()]
         rgb = h[K.FRAME_LIGHT_RGB][()]
-        pts = K.FRAME_POINTS in h
+        pts, shd = K.FRAME_POINTS in h, K.FRAME_SHADOW in h
         for i in range(len(h[K.FRAME_SHOTS])):
             yield RigFrame(h[K.FRAME_SHOTS][i].astype(np.float32), h[K.FRAME_NORMAL][i],
                            h[K.FRAME_MASK][i].astype(bool), true[i], nominal[i], str(objs[i]), str(mats[i]),
                            str(conds[i]), path.name, i, h[K.FRAME_POINTS][i] if pts else None,
-                           rgb[i].astype(np.float64), str(rjs[i]))
+                           rgb[i].astype(np.float64), str(rjs[i]), h[K.FRAME_SHADOW][i] if shd else None)
 
 
 def read_rig_patches(h) -> dict[str, np.ndarray]:
-    """{'image' (N, S, P, P, M), 'normal', 'mask', 'frame_index', 'points' (near lights, else absent)} of an
-    open format-2 shard, decoded."""
+    """{'image' (N, S, P, P, M), 'normal', 'mask', 'frame_index', 'points' (near lights, else absent),
+    'shadow' (N, L, P, P) per-light codes (store_shadows, else absent)} of an open format-2 shard, decoded."""
     if not is_rig_shard(h):
         raise InputError(h.filename, "a three-light shard (format 1): read it with read_patches")
     out = {name: h[key][()] for name, key in K.PATCH_ARRAYS.items()}
     out["frame_index"] = h[K.PATCH_FRAME_INDEX][()]
     if K.PATCH_POINTS in h:
         out["points"] = h[K.PATCH_POINTS][()]
+    if K.PATCH_SHADOW in h:
+        out["shadow"] = h[K.PATCH_SHADOW][()]
     return out
 
 

@@ -28,6 +28,8 @@ PATCH_FRAME_INDEX = "patches/frame_index"  # (N,) int32
 PATCH_YX = "patches/yx"  # (N, 2) int32 top-left corner in the frame
 
 PATCH_POINTS = "patches/points"  # v2, near lights: (N, P, P, 3) float32 surface point (camera frame)
+PATCH_SHADOW = "patches/shadow"  # v2, store_shadows: (N, L, P, P) uint8 per light: 0 lit, 1 attached, 2 cast
+SHADOW_LIT, SHADOW_ATTACHED, SHADOW_CAST = 0, 1, 2  # codes of patches/shadow (0 also off the object)
 
 # frames/*: one row per frame
 FRAME_LIGHT_DIRS = "frames/light_dirs"  # (F, 3, 3) rows = toward light k
@@ -51,6 +53,7 @@ FRAME_NOMINAL_DIRS = "frames/nominal_light_dirs"  # (F, N, 3) the calibration's 
 FRAME_NOMINAL_CROSSTALK = "frames/nominal_crosstalk"  # (F, M, N) the calibration's channel-by-light matrix
 FRAME_SHOTS = "frames/shots"  # (F, S, H, W, M) whole frames' camera images (store_frames)
 FRAME_POINTS = "frames/points"  # (F, H, W, 3) whole frames' surface points (near lights, store_frames)
+FRAME_SHADOW = "frames/shadow"  # (F, L, H, W) uint8 whole frames' per-light shadow codes (store_shadows + store_frames)
 FRAME_RIG_JSON = "frames/rig_json"  # utf-8: the frame's RigSpec (channels, shots, nominal lights)
 FRAME_SCENE_JSON = "frames/scene_json"  # utf-8 strings
 FRAME_OBJECT = "frames/object"
@@ -134,6 +137,7 @@ class Patches:
     mask: np.ndarray  # (N, P, P) uint8
     yx: np.ndarray  # (N, 2) int32, top-left corner in the frame
     points: np.ndarray | None = None  # (N, P, P, 3) surface points (rigs with near lights)
+    shadow: np.ndarray | None = None  # (N, L, P, P) uint8 per-light shadow codes (store_shadows)
 
     def __len__(self) -> int:
         return len(self.yx)
@@ -148,10 +152,11 @@ class Patches:
         if not parts:
             return cls.empty(size)
         points = np.concatenate([p.points for p in parts]) if all(p.points is not None for p in parts) else None
+        shadow = np.concatenate([p.shadow for p in parts]) if all(p.shadow is not None for p in parts) else None
         image = RowBlocks([p.image for p in parts if len(p)] or [parts[0].image])  # not concatenated: see RowBlocks
         return cls(image=image, normal=np.concatenate([p.normal for p in parts]),
                    mask=np.concatenate([p.mask for p in parts]), yx=np.concatenate([p.yx for p in parts]),
-                   points=points)
+                   points=points, shadow=shadow)
 
 
 @dataclass
@@ -183,6 +188,7 @@ class FrameRecord:
     nominal_crosstalk: np.ndarray | None = None  # (M, N)
     shots: np.ndarray | None = None  # (S, H, W, M) whole frame's camera images (store_frames)
     points: np.ndarray | None = None  # (H, W, 3) whole frame's surface points (near lights, store_frames)
+    shadow: np.ndarray | None = None  # (L, H, W) uint8 whole frame's per-light shadow codes (store_shadows)
 
 
 @dataclass
@@ -234,3 +240,4 @@ class RigFrame:
     points: np.ndarray | None = None  # (H, W, 3) surface points (near lights)
     light_rgb: np.ndarray | None = None  # (N, 3) each light's RGB (irradiance; point lights: intensity)
     rig_json: str = ""
+    shadow: np.ndarray | None = None  # (L, H, W) uint8 per-light shadow codes (store_shadows)

@@ -124,6 +124,8 @@ def _rig_arrays(content: ShardContent, arrays: dict, image_dtype: str):
     fr, p = content.frames, content.patches
     if p.points is not None:
         arrays[K.PATCH_POINTS] = p.points.astype(np.float32)
+    if p.shadow is not None:
+        arrays[K.PATCH_SHADOW] = p.shadow.astype(np.uint8)
     n = {len(f.light_dirs) for f in fr}
     m = {np.asarray(f.crosstalk).shape[0] for f in fr}
     if len(n) > 1 or len(m) > 1:
@@ -140,6 +142,8 @@ def _rig_arrays(content: ShardContent, arrays: dict, image_dtype: str):
         arrays[K.FRAME_SHOTS] = _radiance(np.stack([f.shots for f in fr]), image_dtype, "shot")
         if all(f.points is not None for f in fr):
             arrays[K.FRAME_POINTS] = np.stack([f.points for f in fr]).astype(np.float32)
+        if all(f.shadow is not None for f in fr):
+            arrays[K.FRAME_SHADOW] = np.stack([f.shadow for f in fr]).astype(np.uint8)
     strings = {K.FRAME_SCENE_JSON: [f.scene_json for f in fr], K.FRAME_RIG_JSON: [f.rig_json for f in fr],
                K.FRAME_OBJECT: [f.object for f in fr], K.FRAME_MATERIALS: [f.materials for f in fr],
                K.FRAME_CONDITION: [f.condition for f in fr]}

@@ -13,10 +13,11 @@ import json
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, PrivateAttr, model_validator
+from pydantic import Field, PrivateAttr, model_serializer, model_validator
 
 from msps_render import resources
-from msps_render.config_io import StrictModel, apply_overrides, check_override_keys, read_toml, set_path, validate
+from msps_render.config_io import StrictModel, apply_overrides, check_override_keys, omit_defaults, read_toml, set_path, \
+    validate
 from msps_render.errors import InputError, closest
 from msps_render.pipeline.scheduler_config import SchedulerSection
 from msps_render.render.sensor import SensorConfig
@@ -44,6 +45,15 @@ class StorageConfig(StrictModel):
                                                      "per-light images (light k alone) and its environment-"
                                                      "only image, in image_dtype, so exports need no "
                                                      "--rerender")
+    store_shadows: bool = Field(False, description="any rig ([scene.rig]): also keep, per patch and per light, "
+                                                   "where the surface is lit (0), in attached shadow (n.l <= 0: 1) "
+                                                   "or in cast shadow (2) -- patches/shadow, uint8; one ray per "
+                                                   "pixel and light (docs/rigs.md)")
+
+    @model_serializer(mode="wrap")
+    def _without_later_defaults(self, handler):
+        """Configs that do not store shadows serialise (and hash) as before the option existed."""
+        return omit_defaults(self, handler(self), ("store_shadows",))
 
     @model_validator(mode="after")
     def _per_light_needs_frames(self) -> "StorageConfig":
@@ -90,6 +100,9 @@ class DatasetConfig(StrictModel):
         c = self.scene.camera
         if p.size > min(c.width, c.height):
             raise ValueError(f"patch size {p.size} exceeds the frame size {c.width}x{c.height}")
+        if self.dataset.storage.store_shadows and self.scene.rig is None:
+            raise ValueError("dataset.storage.store_shadows needs a [scene.rig] (shadow masks are stored in "
+                             "format-2 shards; the three-light rig is layout = \"three\")")
         if self.sweep is not None:
             for v in self.sweep.values:  # every condition must itself validate
                 condition_config(self, v)

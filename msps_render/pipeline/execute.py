@@ -14,7 +14,7 @@ import signal
 import sys
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -31,6 +31,7 @@ from msps_render.render import render_frame
 from msps_render.render.memory import frame_budget, kernel_cache_misses, release_frame_memory
 from msps_render.render.pool import ScenePool
 from msps_render.render.sensor import apply_sensor
+from msps_render.render.shadows import render_shadows
 from msps_render.render.variant import activate, mitsuba_info
 from msps_render.scene.sample import sample_scene
 from msps_render.timing import StageTimer, stage
@@ -86,6 +87,9 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
         frame = render_frame(spec, variant=ws.variant, threads=ws.threads, timer=timer,
                              per_light=d.storage.store_per_light, scenes=scenes)
         render_s += time.perf_counter() - tr
+        if d.storage.store_shadows:  # per-light shadow codes, ground truth (render/shadows.py)
+            with stage(timer, "shadows"):
+                frame = replace(frame, shadow=render_shadows(spec, ws.variant, ws.threads))
         sensor = cfg.sensor  # optional sensor model (render/sensor.py), its own noise stream
         if sensor is not None and sensor.enabled:
             with stage(timer, "sensor"):
@@ -162,7 +166,8 @@ def rig_record(frame, store_frames: bool) -> dict:
     pos = true.positions if true.positions is not None else np.full((true.n_lights, 3), np.nan)
     return {"rig_json": spec.rig.model_dump_json(), "light_pos": pos, "nominal_dirs": nominal.light_dirs,
             "nominal_crosstalk": nominal.crosstalk,
-            "shots": frame.shots if store_frames else None, "points": frame.points if store_frames else None}
+            "shots": frame.shots if store_frames else None, "points": frame.points if store_frames else None,
+            "shadow": frame.shadow if store_frames else None}
 
 
 def _hash(s: str) -> str:
