@@ -65,6 +65,34 @@ def _bsdf(mi, spec: SceneSpec, p: int, timer: StageTimer | None):
         return mi.load_dict(to_mitsuba(spec.materials[p]))
 
 
+def mitsuba_mesh(mi, name: str, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, props=None):
+    """(mi.Mesh, its traversed parameters) of float vertices, faces and vertex normals, built in memory
+    (call `params.update()` after adding attributes)."""
+    import drjit as dr
+
+    m = mi.Mesh(name, len(vertices), len(faces), props=props if props is not None else mi.Properties(),
+                has_vertex_normals=True)
+    params = mi.traverse(m)
+    params["vertex_positions"] = dr.ravel(mi.TensorXf(vertices))
+    params["faces"] = dr.ravel(mi.TensorXu(faces.astype(np.uint32)))
+    params["vertex_normals"] = dr.ravel(mi.TensorXf(normals))
+    return m, params
+
+
+def geometry_shapes(mi, spec: SceneSpec) -> dict:
+    """The object's surface as `_shapes` builds it (same mesh, textures' subdivision included), as one
+    shape without BSDFs or attributes: for rays that only ask where the surface is (`render/shadows.py`)."""
+    if spec.shape.kind == "sphere":
+        return {"object": {"type": "sphere", "radius": spec.shape.radius}}
+    mesh = build_mesh(spec.shape)
+    textures = [m.texture for m in spec.materials if m.texture is not None]
+    if textures:
+        mesh = subdivide_to_edge(mesh, min(t.max_edge for t in textures))
+    m, params = mitsuba_mesh(mi, "object", mesh.vertices, mesh.faces, mesh.normals)
+    params.update()
+    return {"object": m}
+
+
 def _shapes(mi, spec: SceneSpec, timer: StageTimer | None = None) -> dict:
     """Mitsuba shapes (one per material part), built from memory."""
     import drjit as dr
@@ -95,11 +123,7 @@ def _shapes(mi, spec: SceneSpec, timer: StageTimer | None = None) -> dict:
             remap[used] = np.arange(len(used), dtype=np.uint32)
             props = mi.Properties()
             props["bsdf"] = bsdfs[p]
-            m = mi.Mesh(f"part{p}", len(used), len(faces), props=props, has_vertex_normals=True)
-            params = mi.traverse(m)
-            params["vertex_positions"] = dr.ravel(mi.TensorXf(mesh.vertices[used]))
-            params["faces"] = dr.ravel(mi.TensorXu(remap[faces]))
-            params["vertex_normals"] = dr.ravel(mi.TensorXf(mesh.normals[used]))
+            m, params = mitsuba_mesh(mi, f"part{p}", mesh.vertices[used], remap[faces], mesh.normals[used], props)
             with stage(timer, "texture"):
                 attrs = vertex_attributes(spec.materials[p], mesh.vertices[used] @ R, mesh.normals[used] @ R,
                                           None if mesh.uv is None else mesh.uv[used])

@@ -7,8 +7,8 @@ shadows (or discard shadowed observations) need to know which of a pixel's N obs
 shadowed, and the images alone cannot say it exactly (a dark material looks like a shadow).
 
 One ray per pixel centre and light, in the world (camera) frame of the spec, from a scene of the
-frame's geometry alone (`scene_dict` shapes and sensor: the meshes the renderer builds, no lights or
-integrator); lights in chunks so that N = 96 needs no 1.5-million-ray arrays at once.  Pooled frames
+frame's geometry alone (`scene_dict.geometry_shapes` and the sensor: the mesh the renderer builds, no
+materials, lights or integrator); lights in chunks so that N = 96 needs no 1.5-million-ray arrays.  Pooled frames
 render in their object frame (`render/pool.py`); these masks come from the camera-frame scene, the
 same surface up to float rounding (a silhouette pixel may differ from `mask`: such pixels read 0).
 """
@@ -27,13 +27,13 @@ def light_shadows(mi, spec: SceneSpec) -> np.ndarray:
     import drjit as dr
 
     from msps_render.render.ground_truth import _centre_hits
-    from msps_render.render.scene_dict import _sensor, _shapes
+    from msps_render.render.scene_dict import _sensor, geometry_shapes
 
     if not dr.is_jit_v(mi.Float):
         raise RuntimeError(f"per-light shadow masks (dataset.storage.store_shadows) need a JIT variant "
                            f"(llvm_*/cuda_*); this render uses {mi.variant()}")
     W, H = spec.camera.width, spec.camera.height
-    scene = mi.load_dict({"type": "scene", "sensor": _sensor(mi, spec), **_shapes(mi, spec)})
+    scene = mi.load_dict({"type": "scene", "sensor": _sensor(mi, spec), **geometry_shapes(mi, spec)})
     _, si, valid, n = _centre_hits(mi, scene, scene.sensors()[0], W, H)
     p, ng, n = si.p, mi.Vector3f(si.n), mi.Vector3f(n)
     dr.eval(p, ng, n, valid)
@@ -63,10 +63,12 @@ def _chunk(mi, scene, p, ng, n, valid, lights, n_pix: int) -> np.ndarray:
     dist = dr.norm(to)
     l = dr.select(is_point, to / dr.maximum(dist, 1e-12), d)
     attached = hit & (dr.dot(dr.gather(mi.Vector3f, n, pix), l) <= 0)
-    it = dr.zeros(mi.SurfaceInteraction3f, dr.width(idx))
-    it.p, it.n = x, dr.gather(mi.Vector3f, ng, pix)
-    ray = it.spawn_ray(l)  # offset along the geometric normal, to the light's side (Mitsuba's own rule)
-    ray.maxt = dr.select(is_point, dist * (1.0 - mi.math.ShadowEpsilon), dr.inf)
+    g = dr.gather(mi.Vector3f, ng, pix)
+    # the origin offset along the geometric normal to the light's side, as Mitsuba's `spawn_ray`
+    mag = (1.0 + dr.maximum(dr.maximum(dr.abs(x.x), dr.abs(x.y)), dr.abs(x.z))) * mi.math.RayEpsilon
+    o = dr.fma(dr.mulsign(mag, dr.dot(g, l)), g, x)
+    ray = mi.Ray3f(o, l)
+    ray.maxt = dr.select(is_point, dist * (1.0 - mi.math.ShadowEpsilon), dr.largest(mi.Float))
     blocked = scene.ray_test(ray, hit & ~attached)
     code = dr.select(attached, SHADOW_ATTACHED, dr.select(blocked, SHADOW_CAST, SHADOW_LIT))
     return np.array(mi.UInt32(code), dtype=np.uint8)
