@@ -270,10 +270,20 @@ class PatchDataset(Dataset):
         self._handles = {}
 
 
+CAST_GRAIN = 32768  # elements per cast: torch's parallel grain (at::internal::GRAIN_SIZE), so each runs on one thread
+
+
 def _float32(rows: np.ndarray, out: np.ndarray) -> None:
     """`out[...] = rows` through torch's vectorised cast (numpy's float16 -> float32 is several
-    times slower)."""
-    torch.from_numpy(out).copy_(torch.from_numpy(rows))
+    times slower), in pieces of at most `CAST_GRAIN` elements.  Why pieces: a larger copy runs on
+    torch's intra-op threads, which wait for each other, so with another job on the machine a
+    batch's cast took 8x the CPU and the loader ran at half speed (docs/benchmarks.md "Loader
+    under load"); one thread per piece is as fast on a quiet machine."""
+    src, dst = torch.from_numpy(rows), torch.from_numpy(out)
+    per_row = max(1, int(np.prod(rows.shape[1:], dtype=np.int64)))
+    step = max(1, CAST_GRAIN // per_row)
+    for a in range(0, len(rows), step):
+        dst[a:a + step].copy_(src[a:a + step])
 
 
 def _assemble(idx: np.ndarray, runs: list[tuple[int, int, int]], live: dict[int, dict[str, np.ndarray]],

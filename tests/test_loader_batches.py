@@ -287,3 +287,15 @@ def test_decoded_bytes_and_the_auto_cache_rule(dataset_dir):
     assert ds.decoded_bytes() == held > 0
     assert should_cache(400, 1000) and not should_cache(401, 1000) and not should_cache(1, 0)
     assert available_memory_bytes() > 0  # Linux: /proc/meminfo
+
+
+@pytest.mark.parametrize("shape", [(0, 40, 40, 3), (1, 200, 200, 3), (64, 40, 40, 3), (7, 3), (5,)])
+def test_batch_cast_in_pieces_equals_one_cast(shape):
+    """`data._float32` casts in pieces of at most CAST_GRAIN elements (one thread each, docs/benchmarks.md
+    "Loader under load"): the same float32 values as one cast, for rows smaller and larger than a piece."""
+    from msps_render.data import _float32
+
+    rows = np.random.default_rng(0).normal(size=shape).astype(np.float16)
+    out = np.full(shape, np.nan, np.float32)
+    _float32(rows, out)
+    assert np.array_equal(out, rows.astype(np.float32))
