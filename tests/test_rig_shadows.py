@@ -94,6 +94,13 @@ def test_store_shadows_writes_patches_and_frames(tmp_path):
         assert np.array_equal(p["shadow"][i], frame.shadow[:, y:y + P, x:x + P])
     assert (frame.shadow == SHADOW_ATTACHED).any()
     assert cli("verify", out).returncode == 0
+    # the disk estimates count the codes: one byte per light and pixel, as stored
+    from msps_render.dataset.sizes import raw_patch_bytes
+
+    extra = raw_patch_bytes(P, "float16", "float16", 8, 3, False, 8) - raw_patch_bytes(P, "float16", "float16", 8, 3)
+    assert extra == p["shadow"][0].nbytes == 8 * P * P
+    shown = cli("config", "show", "demo-rig", "--set", "dataset.storage.store_shadows=true")
+    assert shown.returncode == 0 and "+ 8 shadow codes" in shown.stdout, shown.stdout[-1500:]
 
 
 def test_store_shadows_without_a_rig_is_one_line(tmp_path):

@@ -33,9 +33,9 @@ def storage_bytes(path: str | Path) -> dict[str, int]:
 
 
 def raw_patch_bytes(size: int, image_dtype: str, normal_dtype: str, shots: int = 1, channels: int = 3,
-                    points: bool = False) -> int:
+                    points: bool = False, shadow_lights: int = 0) -> int:
     """Uncompressed bytes of one patch row: image (shots x channels) + normal + mask (+ surface points
-    of near-light rigs) + frame index + yx."""
+    of near-light rigs, + one shadow code per light with `store_shadows`) + frame index + yx."""
     item = {"float16": 2, "float32": 4}
     return size * size * (shots * channels * item[image_dtype] + 3 * item[normal_dtype] + 1
-                          + (12 if points else 0)) + 4 + 2 * 4
+                          + (12 if points else 0) + shadow_lights) + 4 + 2 * 4

@@ -171,8 +171,9 @@ def _probe(cfg: DatasetConfig, tasks: list[Task], n: int, variant: str | None,
     by_name = {t.name: t for t in tasks}
     render_s, raw, stored_patches, stored_frames, other, frames_done = 0.0, 0, 0, 0, 0, 0
     rig = cfg.scene.rig
-    _, shots, channels, near = rig.image_shape() if rig is not None else (3, 1, 3, False)
-    raw1 = raw_patch_bytes(d.patches.size, d.storage.image_dtype, d.storage.normal_dtype, shots, channels, near)
+    lights, shots, channels, near = rig.image_shape() if rig is not None else (3, 1, 3, False)
+    raw1 = raw_patch_bytes(d.patches.size, d.storage.image_dtype, d.storage.normal_dtype, shots, channels, near,
+                           lights if d.storage.store_shadows else 0)
     probe_from = []
     tmp = Path(tempfile.mkdtemp(prefix="msps-probe-"))
     ws = WorkerSettings(out_dir=str(tmp), variant=variant, threads=threads)
@@ -282,13 +283,15 @@ def _rig_line(cfg: DatasetConfig) -> str | None:
     if rig is None:
         return None
     try:
-        _, shots, channels, near = rig.image_shape()
+        lights, shots, channels, near = rig.image_shape()
     except InputError as e:  # a light file not here (e.g. $MSPS_TEST_DATA unset): the plan without it
         return f"rig {rig.layout}: lights from {rig.file} ({e})"
     d = cfg.dataset
     one = raw_patch_bytes(d.patches.size, d.storage.image_dtype, d.storage.normal_dtype)
-    mine = raw_patch_bytes(d.patches.size, d.storage.image_dtype, d.storage.normal_dtype, shots, channels, near)
-    line = (f"rig {rig.describe()}: {shots} image(s) of {d.patches.size}x{d.patches.size}x{channels} per patch, "
+    mine = raw_patch_bytes(d.patches.size, d.storage.image_dtype, d.storage.normal_dtype, shots, channels, near,
+                           lights if d.storage.store_shadows else 0)
+    line = (f"rig {rig.describe()}: {shots} image(s) of {d.patches.size}x{d.patches.size}x{channels} per patch"
+            f"{f' + {lights} shadow codes' if d.storage.store_shadows else ''}, "
             f"{mine / one:.1f}x the raw bytes of a three-light patch")
     if shots > 16:
         line += ("; keep image_dtype float16, and train on a light subset per sample (the loader's "

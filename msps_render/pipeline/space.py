@@ -35,14 +35,16 @@ def bound_bytes(cfg: DatasetConfig, n_shards: int) -> int:
     windows = len(window_origins(cam.height, cam.width, d.patches.size, d.patches.stride))
     pixel = 0
     rig = cfg.scene.rig
-    _, shots, channels, near = rig.image_shape() if rig is not None else (3, 1, 3, False)
+    lights, shots, channels, near = rig.image_shape() if rig is not None else (3, 1, 3, False)
+    shadows = lights if st.store_shadows else 0  # one uint8 code per light and pixel
     if st.store_frames:  # image, normal (float32), mask, albedo (float16 x3), blend (float16)
         pixel += 12 + 12 + 1 + 6 + 2
-        if rig is not None:  # the rig's shots, and the surface points of near lights
-            pixel += shots * channels * _ITEM[st.image_dtype] + (12 if near else 0)
+        if rig is not None:  # the rig's shots, the surface points of near lights, shadow codes
+            pixel += shots * channels * _ITEM[st.image_dtype] + (12 if near else 0) + shadows
     if st.store_per_light:  # three lights + the environment, 3 channels each
         pixel += 4 * 3 * _ITEM[st.image_dtype]
-    per_frame = windows * raw_patch_bytes(d.patches.size, st.image_dtype, st.normal_dtype, shots, channels, near) \
+    per_frame = windows * raw_patch_bytes(d.patches.size, st.image_dtype, st.normal_dtype, shots, channels, near,
+                                          shadows) \
         + cam.width * cam.height * pixel + FRAME_RECORD
     return int(FILTER_GROWTH * frames * per_frame + n_shards * SHARD_OVERHEAD)
 
