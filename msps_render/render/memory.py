@@ -1,7 +1,6 @@
 """Keep pipeline workers' memory flat: drjit's kernel cache and glibc's arenas (docs/benchmarks.md)."""
 from __future__ import annotations
 
-
 from dataclasses import dataclass
 
 KERNEL_BUDGET = 128  # kernels drjit may add to its in-memory cache between two flushes (~0.15 MiB each)
