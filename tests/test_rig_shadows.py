@@ -109,3 +109,14 @@ def test_store_shadows_without_a_rig_is_one_line(tmp_path):
     r = cli("render", "demo", "--out", tmp_path / "x", "--set", "dataset.storage.store_shadows=true")
     assert r.returncode == 1 and "store_shadows needs a [scene.rig]" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "x").exists()
+
+
+def test_shadows_in_a_scalar_variant_are_refused_in_one_error(scalar_variant):
+    from msps_render.errors import InputError
+    from msps_render.render.shadows import render_shadows
+
+    lights, rs = sample_rig(RigConfig.model_validate({"layout": "ring", "n_lights": 4}), np.random.default_rng(0))
+    spec = SceneSpec(shape=ShapeSpec(kind="sphere", radius=0.9), materials=(lambertian((0.5, 0.5, 0.5)),),
+                     lights=lights, camera=CameraSpec(width=8, height=8), rig=rs)
+    with pytest.raises(InputError, match="store_shadows.*JIT variant"):
+        render_shadows(spec, scalar_variant)

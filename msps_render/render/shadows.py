@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from msps_render.dataset.schema import SHADOW_ATTACHED, SHADOW_CAST, SHADOW_LIT
+from msps_render.errors import InputError
 from msps_render.scene.spec import SceneSpec
 
 LIGHTS_PER_LAUNCH = 16  # 16 x 128 x 128 rays per kernel: a few MB of drjit arrays
@@ -30,8 +31,8 @@ def light_shadows(mi, spec: SceneSpec) -> np.ndarray:
     from msps_render.render.scene_dict import _sensor, geometry_shapes
 
     if not dr.is_jit_v(mi.Float):
-        raise RuntimeError(f"per-light shadow masks (dataset.storage.store_shadows) need a JIT variant "
-                           f"(llvm_*/cuda_*); this render uses {mi.variant()}")
+        raise InputError("dataset.storage.store_shadows", f"per-light shadow masks need a JIT variant "
+                                                          f"(llvm_*/cuda_*); this render uses {mi.variant()}")
     W, H = spec.camera.width, spec.camera.height
     scene = mi.load_dict({"type": "scene", "sensor": _sensor(mi, spec), **geometry_shapes(mi, spec)})
     _, si, valid, n = _centre_hits(mi, scene, scene.sensors()[0], W, H)
