@@ -17,7 +17,7 @@ import drjit as dr
 import numpy as np
 
 from msps_render.pipeline.config import load_config
-from msps_render.render.scene_dict import _bound, _rgb, build_scene_dict, camera_to_world, light_key, mitsuba_mesh
+from msps_render.render.scene_dict import _bound, build_scene_dict, camera_to_world, light_key, mitsuba_mesh
 from msps_render.render.variant import activate
 from msps_render.scene.sample import sample_scene
 from msps_render.scene.shapes import build_mesh

@@ -10,7 +10,7 @@ from msps_render.dataset.schema import SHADOW_ATTACHED, SHADOW_CAST, SHADOW_LIT
 from msps_render.scene.materials import lambertian
 from msps_render.scene.rig_layouts import RigConfig, sample_rig
 from msps_render.scene.sample import SceneConfig, sample_scene
-from msps_render.scene.spec import CameraSpec, IntegratorSpec, SceneSpec, ShapeSpec
+from msps_render.scene.spec import CameraSpec, SceneSpec, ShapeSpec
 from msps_render.testing import analytic_sphere_normals
 
 RES = 64
