@@ -24,6 +24,7 @@ import pytest
 
 from cli_helpers import cli, one_line_error, render_tiny
 from msps_render.errors import InputError
+from msps_render.models.metrics import angular_error_deg
 
 pytestmark = pytest.mark.usefixtures("force_llvm")  # LLVM even where CUDA is preferred (conftest.py)
 
@@ -88,8 +89,6 @@ def _frames(root):
 
 
 def _mean_error_deg(n, gt, mask) -> float:
-    from msps_render.models.metrics import angular_error_deg
-
     return float(angular_error_deg(n[mask], gt[mask]).mean())
 
 
@@ -254,7 +253,7 @@ def test_psfcn_rig_export_through_ps_fcn_loader_recovers_lambertian_normals(far,
     assert len(entries) == 2
 
     def error_deg(n, gt, m):
-        return np.degrees(np.arccos(np.clip((n * gt).sum(-1), -1.0, 1.0)))[m]
+        return angular_error_deg(n[m], gt[m])
 
     for entry in entries:
         item = _ps_fcn_item(root, entry)
