@@ -79,15 +79,23 @@ def mitsuba_mesh(mi, name: str, vertices: np.ndarray, faces: np.ndarray, normals
     return m, params
 
 
+def object_mesh(spec: SceneSpec, timer: StageTimer | None = None):
+    """The object's mesh as the renderer uses it (camera frame): built, then, for vertex-sampled
+    textures, subdivided so that its triangles are small (timed as 'texture')."""
+    mesh = build_mesh(spec.shape)
+    textures = [m.texture for m in spec.materials if m.texture is not None]
+    if textures:
+        with stage(timer, "texture"):
+            mesh = subdivide_to_edge(mesh, min(t.max_edge for t in textures))
+    return mesh
+
+
 def geometry_shapes(mi, spec: SceneSpec) -> dict:
     """The object's surface as `_shapes` builds it (same mesh, textures' subdivision included), as one
     shape without BSDFs or attributes: for rays that only ask where the surface is (`render/shadows.py`)."""
     if spec.shape.kind == "sphere":
         return {"object": {"type": "sphere", "radius": spec.shape.radius}}
-    mesh = build_mesh(spec.shape)
-    textures = [m.texture for m in spec.materials if m.texture is not None]
-    if textures:
-        mesh = subdivide_to_edge(mesh, min(t.max_edge for t in textures))
+    mesh = object_mesh(spec)
     m, params = mitsuba_mesh(mi, "object", mesh.vertices, mesh.faces, mesh.normals)
     params.update()
     return {"object": m}
@@ -100,11 +108,7 @@ def _shapes(mi, spec: SceneSpec, timer: StageTimer | None = None) -> dict:
     if spec.shape.kind == "sphere":
         return {"part0": {"type": "sphere", "radius": spec.shape.radius, "bsdf": _bsdf(mi, spec, 0, timer)}}
     with stage(timer, "mesh"):  # the BSDFs inside are timed apart (nested stage)
-        mesh = build_mesh(spec.shape)
-        textures = [m.texture for m in spec.materials if m.texture is not None]
-        if textures:  # textures are sampled at vertices: make the triangles small first
-            with stage(timer, "texture"):
-                mesh = subdivide_to_edge(mesh, min(t.max_edge for t in textures))
+        mesh = object_mesh(spec, timer)
         R = np.asarray(spec.shape.rotation, dtype=np.float64)  # world = object @ R.T
         parts = face_parts(mesh, spec.split)
         used_parts = [p for p in range(int(parts.max()) + 1) if (parts == p).any()]
