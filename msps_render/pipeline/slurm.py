@@ -234,7 +234,9 @@ def run_slurm(tasks: Iterable, ws, workers: int, on_done, settings: SlurmSetting
 
 def _close(client, cluster, submitted: list[str]) -> None:
     """Close the client and the cluster, then `scancel` every job we submitted (also after an
-    interrupt or a failed close; cancelling a finished job is harmless)."""
+    interrupt or a failed close; cancelling a finished job is harmless) and wait until Slurm has
+    ended them: a job still shutting down may be writing a shard, so the driver's clean-up of
+    partial shards (`remove_temporaries`) must come after it (a `.shard-N.h5.tmp` was left once)."""
     for thing in (client, cluster):
         if thing is None:
             continue
@@ -246,4 +248,20 @@ def _close(client, cluster, submitted: list[str]) -> None:
         try:
             subprocess.run(["scancel", *submitted], capture_output=True, timeout=30)
         except (OSError, subprocess.TimeoutExpired):
-            pass
+            return
+        wait_ended(submitted)
+
+
+def wait_ended(ids: list[str], timeout: float = 60.0) -> bool:
+    """Wait until none of the jobs `ids` is alive (COMPLETING included: its processes are still being
+    killed); False after `timeout` seconds or when squeue cannot say."""
+    t_end = time.monotonic() + timeout
+    while True:
+        states = job_states(list(ids))
+        if any(st == "UNKNOWN" for st, _ in states.values()):
+            return False
+        if not any(st in ALIVE for st, _ in states.values()):
+            return True
+        if time.monotonic() > t_end:
+            return False
+        time.sleep(0.2)
