@@ -87,7 +87,7 @@ def msps(*args, env_extra=None, timeout=600) -> subprocess.CompletedProcess:
 
 
 def start(*args) -> subprocess.Popen:
-    env = dict(os.environ, MSPS_THREADS="1")
+    env = dict(os.environ, MSPS_THREADS="1", PYTHONFAULTHANDLER="1")  # SIGABRT dumps every thread's stack
     return subprocess.Popen([sys.executable, "-m", "msps_render.cli", *map(str, args)], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as in a terminal
@@ -126,6 +126,21 @@ def wait_for_shards(out: Path, n: int, proc: subprocess.Popen, timeout=300) -> i
     raise AssertionError(f"no {n} shards within {timeout} s")
 
 
+def finish(proc: subprocess.Popen, timeout: float) -> str:
+    """The driver's stderr once it has ended; if it hangs, its threads' stacks (faulthandler) in the
+    failure, and it is killed so that no Dask scheduler outlives the test."""
+    try:
+        return proc.communicate(timeout=timeout)[1]
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)
+        try:
+            err = proc.communicate(timeout=10)[1]
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            err = proc.communicate()[1]
+        raise AssertionError(f"the driver did not end within {timeout} s; its stacks:\n{err[-6000:]}") from None
+
+
 def kept_and_intact(out: Path, before: dict) -> dict:
     """The manifest's shards: every earlier one still recorded, unchanged, and every file matching."""
     m = read_manifest(out)
@@ -158,7 +173,7 @@ def test_interrupts_and_a_dead_job_keep_shards_and_resume_finishes(slurm, tmp_pa
             slurm.run("scancel", jobs[0])
         else:
             p.send_signal(how)
-        _, err = p.communicate(timeout=120)
+        err = finish(p, 120)
         if how == "scancel":
             lines = [ln for ln in err.splitlines() if ln.strip()]
             assert p.returncode == 1 and len(lines) == 1, (p.returncode, err[-2000:])
@@ -245,3 +260,33 @@ def test_docs_scaling_slurm_recipe_runs_as_written_and_equals_a_local_run(slurm,
              for d in _differences(out / "shards" / k, tmp_path / "local" / "shards" / k)
              if not d.endswith("same content, other bytes")]
     assert diffs == [], diffs
+
+
+def test_a_future_that_never_finishes_still_lets_the_watch_stop_the_run():
+    """CI hung 120 s once: `as_completed` handed out the shard of a job cancelled behind the driver's
+    back, and `result()` waited for a recomputation no worker would ever do.  The wait now polls the
+    watch (which raises once Slurm says the job ended)."""
+    from msps_render.errors import WorkerDied
+    from msps_render.pipeline.execute import _result
+
+    class Stuck:  # a distributed Future as it was then: result(timeout) only ever times out
+        def result(self, timeout=None):
+            assert timeout is not None, "an unbounded wait cannot be stopped"
+            time.sleep(0.01)
+            raise TimeoutError
+
+    class Done:
+        def result(self, timeout=None):
+            return {"ok": 1}
+
+    calls = []
+
+    def watch():
+        calls.append(1)
+        if len(calls) == 3:
+            raise WorkerDied("Slurm job 6 (a render worker) ended (CANCELLED)")
+
+    with pytest.raises(WorkerDied):
+        _result(Stuck(), watch)
+    assert len(calls) == 3
+    assert _result(Done(), watch) == {"ok": 1} and len(calls) == 3  # a finished one: no extra watch call

@@ -8,6 +8,7 @@ Only the parent touches the manifest.
 """
 from __future__ import annotations
 
+import asyncio
 import multiprocessing as mp
 import os
 import signal
@@ -461,6 +462,19 @@ def run_dask(tasks: Iterable[Task], ws: WorkerSettings, scheduler: str, workers:
             cluster.close()
 
 
+def _result(future, watch: Callable[[], None] | None):
+    """`future.result()`, still calling `watch` while it waits: a future `as_completed` hands out
+    may not be finished after all (its worker's job was killed: Dask waits for the task to be
+    computed again, by a worker that will never come), and only the watch can then stop the run."""
+    if watch is None:
+        return future.result()
+    while True:
+        try:
+            return future.result(timeout=0.5)
+        except (TimeoutError, asyncio.TimeoutError):
+            watch()
+
+
 def collect(client, tasks: list[Task], ws: WorkerSettings, on_done: OnDone,
             watch: Callable[[], None] | None = None) -> None:
     """Submit every task to a Dask `client`, record each shard as it finishes.
@@ -482,7 +496,7 @@ def collect(client, tasks: list[Task], ws: WorkerSettings, on_done: OnDone,
                 time.sleep(0.2)
                 continue
             for f in ac.next_batch(block=watch is None):
-                info = f.result()
+                info = _result(f, watch)
                 recorded.add(f.key)
                 on_done(futs[f], info)
     except BaseException:  # error or interrupt: keep shards that finished, quietly cancel the rest
