@@ -78,16 +78,9 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
     t0 = time.perf_counter()
     render_s = 0.0
     pats, fidx, frames = [], [], []
-    for j, rng in enumerate(frame_rngs(task, d.frames_per_shard)):
-        fseed = frame_seed(task, j)
-        with stage(timer, "sample"):
-            spec = sample_scene(cfg.scene, rng, seed=fseed,
-                                frame_index=task.shard_in_condition * d.frames_per_shard + j)
-        misses0 = kernel_cache_misses()
-        tr = time.perf_counter()
-        frame = render_frame(spec, variant=ws.variant, threads=ws.threads, timer=timer,
-                             per_light=d.storage.store_per_light, scenes=scenes)
-        render_s += time.perf_counter() - tr
+    misses0 = kernel_cache_misses()
+    for j, fseed, spec, frame, seconds in _rendered(task, cfg, ws, timer, scenes):
+        render_s += seconds
         if d.storage.store_shadows:  # per-light shadow codes, ground truth (render/shadows.py)
             with stage(timer, "shadows"):
                 frame = replace(frame, shadow=render_shadows(spec, ws.variant, ws.threads))
@@ -105,6 +98,7 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
             budget = frame_budget(len(spec.lights))  # flat worker memory, kernels kept for the next scene (docs/benchmarks.md)
             scenes.trim(budget.scenes)
             release_frame_memory(misses0, budget)
+            misses0 = kernel_cache_misses()
         env = spec.environment
         with stage(timer, "frame record"):
             frames.append(FrameRecord(
@@ -144,6 +138,61 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
     info.update(condition=task.condition, render_seconds=render_s, wall_seconds=time.perf_counter() - t0,
                 bytes=out.stat().st_size)  # lets status commands spot a truncated shard without hashing it
     return info
+
+
+def _rendered(task: Task, cfg: DatasetConfig, ws: WorkerSettings, timer: StageTimer | None, scenes: ScenePool):
+    """(j, frame seed, spec, frame, render seconds) of each frame of the shard, in order.
+
+    Frames are sampled `dataset.batch_frames` at a time; a group that can share one kernel launch
+    (`render.batch.batchable`) is rendered by `render_batch`, any other frame alone.  With a timer,
+    a batch's stage times are shared out evenly over its frames (a frame's row stays its cost)."""
+    d = cfg.dataset
+    rngs = list(frame_rngs(task, d.frames_per_shard))
+    B = d.batch_frames
+    batches = None
+    for start in range(0, len(rngs), B):
+        group = []
+        for j in range(start, min(start + B, len(rngs))):
+            fseed = frame_seed(task, j)
+            with stage(timer, "sample"):
+                spec = sample_scene(cfg.scene, rngs[j], seed=fseed,
+                                    frame_index=task.shard_in_condition * d.frames_per_shard + j)
+            group.append((j, fseed, spec))
+        specs = [g[2] for g in group]
+        if len(specs) > 1:
+            from msps_render.render.batch import BatchScenes, batchable, render_batch
+
+            mi = activate(ws.variant, ws.threads)
+            if batchable(specs, mi):
+                batches = batches if batches is not None else BatchScenes()
+                before = dict(timer.current) if timer is not None else None
+                tr = time.perf_counter()
+                out = render_batch(specs, variant=ws.variant, threads=ws.threads, timer=timer,
+                                   per_light=d.storage.store_per_light, scenes=batches)
+                share = (time.perf_counter() - tr) / len(specs)
+                rest = _share_stages(timer, before, len(specs))
+                for n, ((j, fseed, spec), frame) in enumerate(zip(group, out)):
+                    if n and timer is not None:
+                        for k, v in rest.items():
+                            timer.add(k, v)
+                    yield j, fseed, spec, frame, share
+                continue
+        for j, fseed, spec in group:
+            tr = time.perf_counter()
+            frame = render_frame(spec, variant=ws.variant, threads=ws.threads, timer=timer,
+                                 per_light=d.storage.store_per_light, scenes=scenes)
+            yield j, fseed, spec, frame, time.perf_counter() - tr
+
+
+def _share_stages(timer: StageTimer | None, before: dict | None, n: int) -> dict:
+    """Keep 1/n of the stage seconds added since `before` in the current frame; return the share
+    each of the other n - 1 frames gets."""
+    if timer is None:
+        return {}
+    added = {k: v - before.get(k, 0.0) for k, v in timer.current.items() if v - before.get(k, 0.0) > 0}
+    for k, v in added.items():
+        timer.current[k] -= v - v / n
+    return {k: v / n for k, v in added.items()}
 
 
 def _stored(image: np.ndarray, dtype: str) -> np.ndarray:

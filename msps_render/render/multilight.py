@@ -72,6 +72,27 @@ class PartTable:
     table: object  # mi.BSDFPtr, opaque
 
 
+@dataclasses.dataclass
+class FrameTable:
+    """Batched frames (`render.batch`): what each frame of one launch has of its own, as opaque device
+    arrays indexed by the frame's slot (its cell of space, x = slot * spacing): K directional lights
+    (direction toward the light in the object frame, RGB irradiance), the material part of every face
+    of its mesh, and each part's BSDF.  Rays after the camera's reach at most `reach`, so a frame's
+    paths never leave its cell."""
+
+    n_frames: int
+    n_lights: int
+    spacing: float
+    reach: float
+    light_d: tuple  # (x, y, z) mi.Float, (B * K,)
+    light_e: tuple  # (r, g, b) mi.Float, (B * K,)
+    face_part: object  # mi.UInt32 (B * F): the part of face f of slot b's mesh at b * F + f
+    face_stride: object  # opaque mi.UInt32: F
+    n_parts: int  # P: slot b's part p has its BSDF at b * P + p
+    bsdfs: object  # mi.BSDFPtr (B * P)
+    keep: list  # the BSDF objects (alive as long as the table)
+
+
 def channel_names(emitter_id: str, n_channels: int = 3) -> list[str]:
     """The AOV channel names of one emitter's image: R, G, B, or C0 .. C{M-1} for M != 3 camera channels."""
     names = _CHANNELS if n_channels == 3 else tuple(f"C{i}" for i in range(n_channels))
@@ -216,6 +237,7 @@ def _plugin_class(variant: str):
                 self.max_depth = 2 ** 31 - 1
             self.tables: dict[str, dict] = {}
             self.parts: PartTable | None = None
+            self.batch: FrameTable | None = None
 
         # ---- configuration
         def set_bands(self, grid: np.ndarray, bands: dict[str, np.ndarray]) -> None:
@@ -250,6 +272,11 @@ def _plugin_class(variant: str):
             dr.make_opaque(table)
             self.parts = PartTable(bsdfs, table)
 
+        def set_batch(self, table: FrameTable | None) -> None:
+            """Batched frames (`render.batch`): lights and materials per frame from `table`, not from
+            the scene's emitters and shapes (None: back to one frame per launch)."""
+            self.batch = table
+
         def _bsdf(self, si, ray, active):
             """The BSDF at `si`: the shape's own, or its face's part's in a pooled scene."""
             if self.parts is None:
@@ -283,6 +310,8 @@ def _plugin_class(variant: str):
             return ems, delta, infinite, (env[0] if env else None)
 
         def sample(self, scene, sampler, ray, medium=None, active=True):
+            if self.batch is not None:
+                return self._sample_batch(scene, sampler, ray, active)
             ems, delta, infinite, env = self._emitters(scene)
             n = len(ems)
             spectral = bool(mi.is_spectral)
@@ -413,6 +442,75 @@ def _plugin_class(variant: str):
                     main = main + acc[e]
                 main = dr.select(valid_ray, main, 0.0)
             return main, valid_ray, aovs
+
+        def _sample_batch(self, scene, sampler, ray, active):
+            """`sample` for batched frames (RGB, directional lights from the frame table, no
+            environment): the same estimator -- every light at every vertex, BSDF-sampled bounces,
+            Russian roulette -- with each vertex's frame read from its cell, and every ray after
+            the camera's limited to the table's reach."""
+            tb = self.batch
+            K, B, P = tb.n_lights, tb.n_frames, tb.n_parts
+            continues = self.max_depth > 2
+            ctx = mi.BSDFContext()
+
+            def body(st: PathState) -> tuple[PathState]:
+                sampler, ray, depth, active = st.sampler, st.ray, st.depth, st.active
+                si = scene.ray_intersect(ray, mi.RayFlags.All, depth == 0, active)
+                hit = active & si.is_valid()
+                slot = mi.UInt32(dr.clip(dr.round(si.p.x / tb.spacing), 0.0, float(B - 1)))
+                part = dr.gather(mi.UInt32, tb.face_part, slot * tb.face_stride + si.prim_index, hit)
+                bsdf = dr.gather(mi.BSDFPtr, tb.bsdfs, slot * P + part, hit)
+                acc, beta = list(st.acc), st.beta[0]
+                active_next = active & (depth + 1 < self.max_depth) & si.is_valid()
+                flags = bsdf.flags()
+                active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth)
+                transmits = mi.has_flag(flags, mi.BSDFFlags.Transmission)
+                u_em = sampler.next_2d()  # drawn as the unbatched path draws it (unused by delta lights)
+                for k in range(K):
+                    i = slot * K + k
+                    d = mi.Vector3f(*(dr.gather(mi.Float, c, i, active_em) for c in tb.light_d))
+                    e = mi.Color3f(*(dr.gather(mi.Float, c, i, active_em) for c in tb.light_e))
+                    wo = si.to_local(d)
+                    ok = active_em & ((mi.Frame3f.cos_theta(wo) > 0) | transmits)
+                    shadow = si.spawn_ray(d)
+                    shadow.maxt = tb.reach
+                    ok &= ~scene.ray_test(shadow, ok)
+                    val = bsdf.eval(ctx, si, wo, ok)
+                    acc[k] = dr.select(ok, acc[k] + beta * val * e, acc[k])
+                del u_em
+                st.valid_ray = st.valid_ray | hit
+                st.acc = acc
+                if not continues:
+                    st.active = active & False
+                    return (st,)
+                u1, u2 = sampler.next_1d(), sampler.next_2d()
+                bs, w = bsdf.sample(ctx, si, u1, u2, active_next)
+                beta = beta * w
+                nxt = si.spawn_ray(si.to_world(bs.wo))
+                nxt.maxt = tb.reach
+                st.ray = nxt
+                st.eta = eta = st.eta * bs.eta
+                depth = dr.select(si.is_valid(), depth + 1, depth)
+                beta_max = dr.max(mi.unpolarized_spectrum(beta))
+                rr_prob = dr.minimum(beta_max * eta * eta, 0.95)
+                rr_active = depth >= self.rr_depth
+                rr_continue = sampler.next_1d() < rr_prob
+                st.beta = [dr.select(rr_active, beta / rr_prob, beta)]
+                st.depth = depth
+                st.active = active_next & (~rr_active | rr_continue) & (beta_max != 0.0)
+                return (st,)
+
+            start = PathState(sampler=sampler, ray=mi.Ray3f(ray), depth=mi.UInt32(0), active=mi.Bool(active),
+                              valid_ray=mi.Bool(False), eta=mi.Float(1.0), prev_si=dr.zeros(mi.Interaction3f),
+                              prev_pdf=mi.Float(1.0), prev_delta=mi.Bool(True), beta=[mi.Spectrum(1.0)],
+                              acc=[mi.Spectrum(0.0) for _ in range(K)])
+            (end,) = dr.while_loop(state=(start,), cond=lambda st: st.active, body=body, labels=("path",),
+                                   label=PLUGIN_NAME + "_batch")
+            aovs, main = [], mi.Spectrum(0.0)
+            for k in range(K):
+                aovs.extend(dr.select(end.valid_ray, end.acc[k][c], 0.0) for c in range(3))
+                main = main + end.acc[k]
+            return dr.select(end.valid_ray, main, 0.0), end.valid_ray, aovs
 
     return MultiLightIntegrator
 

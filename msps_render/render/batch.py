@@ -1,0 +1,267 @@
+"""Frames in batches: B pooled frames from ONE kernel launch (`dataset.batch_frames`, issue 45).
+
+Why: a `paper-train` frame's render kernel is short (~25 ms on a CPU core, ~3 ms on a GPU) and each
+launch has a fixed cost, so one launch per frame leaves the device waiting on per-frame Python work.
+
+How (the pooled frames of `render.pool` only: repeated shapes, RGB, one-pass, directional lights, no
+environment, no textures):
+- one loaded scene holds every pooled shape this worker has seen as a shape group, instanced once per
+  slot b = 0..B-1 in its own cell of space (slot b at x = b * spacing, shape r at y = r * spacing).
+  The scene never changes while its shapes suffice: no BVH is rebuilt from batch to batch;
+- frame b is seen by its own orthographic camera in slot b's cell of its shape, turned by R^T as in the
+  pooled scene (`render.pool`), and the B cameras form one `batch` sensor (a film B frames wide);
+- the one-pass integrator's batch mode (`multilight.FrameTable`) reads each vertex's frame from its
+  cell and takes that frame's lights and part BSDFs from tables; rays after the camera's stop within
+  `reach` of their start, so a frame's paths never meet another cell;
+- ground truth: one ray per pixel centre of the whole batch film, in the same launch for all frames.
+
+The images are those of the same frames rendered one at a time in distribution, not bit for bit
+(other random numbers: the B frames share one sampler; tests/test_batch.py measures it), so B is
+part of the config and its hash; a stored spec alone re-renders its frame unbatched, and the shard
+(`msps render` of its config and seed) reproduces the batched pixels.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from msps_render.frame import Frame
+from msps_render.render.ground_truth import _centre_hits, _finish_geometry, constant_appearance
+from msps_render.render.multilight import FrameTable, integrator_dict
+from msps_render.render.pool import POOLED_SHAPES, _rotation, poolable
+from msps_render.render.render import _frame
+from msps_render.render.scene_dict import _bsdf, _sensor, camera_to_world, emitter_ids, mitsuba_mesh
+from msps_render.render.variant import activate, resolve_variant
+from msps_render.scene.geometry import vertex_normals
+from msps_render.scene.shapes import canonical_mesh, rotated_vertices, split_faces
+from msps_render.scene.spec import SceneSpec
+from msps_render.timing import StageTimer, stage
+
+OBJECT_RADIUS = 1.5  # a batched shape must fit in this ball about its cell's centre (scene units)
+MAX_SHAPES = 16  # shape groups one batch scene keeps (paper-train draws from 9)
+
+
+def batch_key(spec: SceneSpec, variant: str) -> tuple:
+    """What the frames of one launch must share: the camera, the integrator, the number of lights."""
+    i = spec.integrator
+    return (variant, spec.camera, i.kind, i.max_depth, i.spp, i.sampler, len(spec.lights))
+
+
+def shape_key(spec: SceneSpec) -> tuple:
+    s = spec.shape
+    return (s.kind, s.name, tuple(s.sh_coeffs), s.subdivisions, tuple(sorted(s.params.items())), float(s.radius))
+
+
+def batchable(specs: list[SceneSpec], mi) -> bool:
+    """Can these frames share one launch?  Pooled frames (`pool.poolable`) seen by orthographic
+    cameras (`layout` bounds their rays), with one batch key."""
+    return (len(specs) > 1 and all(poolable(s, mi) and s.shape.kind in POOLED_SHAPES
+                                   and s.camera.kind == "orthographic" for s in specs)
+            and len({batch_key(s, mi.variant()) for s in specs}) == 1)
+
+
+def layout(spec: SceneSpec) -> tuple[float, float]:
+    """(spacing of the cells, reach of every ray after the camera's).
+    A later ray starts on the object (within `OBJECT_RADIUS` of its cell's centre) and any surface that
+    can shadow it is within `2 * OBJECT_RADIUS`: `reach` is a little more.  A camera ray runs from its
+    camera (`distance` from the centre, at most `extent * sqrt 2` off the axis) to the far clip,
+    `OBJECT_RADIUS` past the centre.  Cells are far enough apart that neither comes within
+    `OBJECT_RADIUS` of another cell's centre."""
+    c = spec.camera
+    reach = 2.0 * OBJECT_RADIUS + 0.5
+    camera_reach = float(np.hypot(c.distance, c.extent * np.sqrt(2.0)))
+    return max(camera_reach, OBJECT_RADIUS + reach) + OBJECT_RADIUS + 1.0, reach
+
+
+@dataclass
+class BatchScene:
+    """A loaded scene of shape groups instanced in B slots, and what its rows are."""
+
+    scene: object
+    integrator: object
+    rows: dict  # shape_key -> row r (cells at y = r * spacing)
+    meshes: dict  # shape_key -> (canonical vertices float64, faces)
+    n_slots: int
+    spacing: float
+    reach: float
+
+
+class BatchScenes:
+    """The worker's batch scene per batch key (one, in practice), rebuilt only when a batch brings a
+    shape it does not hold (at most `MAX_SHAPES` kept: beyond that, the batch's own shapes)."""
+
+    def __init__(self):
+        self._scenes: OrderedDict[tuple, BatchScene] = OrderedDict()
+        self._meshes: OrderedDict[tuple, tuple] = OrderedDict()
+        self.built = 0
+
+    def get(self, specs: list[SceneSpec], mi, timer: StageTimer | None) -> BatchScene:
+        key = (batch_key(specs[0], mi.variant()), len(specs))
+        wanted = list(dict.fromkeys(shape_key(s) for s in specs))
+        have = self._scenes.get(key)
+        if have is not None and all(k in have.rows for k in wanted):
+            return have
+        with stage(timer, "mesh"):
+            for s in specs:
+                k = shape_key(s)
+                if k not in self._meshes:
+                    v, f, _ = canonical_mesh(s.shape)
+                    r = float(np.max(np.linalg.norm(v, axis=1)))
+                    if r > OBJECT_RADIUS:
+                        raise ValueError(f"shape {k[1] or k[0]} reaches {r:.2f} from its centre, beyond the "
+                                         f"{OBJECT_RADIUS} a batched frame allows")
+                    self._meshes[k] = (v, f)
+        keys = list(dict.fromkeys((list(have.rows) if have is not None else []) + wanted))
+        if len(keys) > MAX_SHAPES:
+            keys = wanted
+        with stage(timer, "scene load"):
+            bs = _build(mi, specs[0], {k: self._meshes[k] for k in keys}, len(specs))
+        self._scenes[key] = bs
+        self._scenes.move_to_end(key)
+        while len(self._scenes) > 1:
+            self._scenes.popitem(last=False)
+        self.built += 1
+        return bs
+
+
+def _build(mi, spec: SceneSpec, meshes: dict, n_slots: int) -> BatchScene:
+    spacing, reach = layout(spec)
+    T = mi.ScalarTransform4f
+    blank = mi.load_dict({"type": "diffuse"})  # never evaluated: the frame table's BSDFs are
+    d: dict = {"type": "scene"}
+    rows = {}
+    for r, (k, (v, f)) in enumerate(meshes.items()):
+        props = mi.Properties()
+        props["bsdf"] = blank
+        m, params = mitsuba_mesh(mi, f"shape{r}", v.astype(np.float32), f, vertex_normals(v, f).astype(np.float32),
+                                 props)
+        params.update()
+        d[f"group{r}"] = {"type": "shapegroup", "mesh": m}
+        for b in range(n_slots):
+            d[f"cell{r}_{b}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": f"group{r}"},
+                                 "to_world": T().translate([b * spacing, r * spacing, 0.0])}
+        rows[k] = r
+    integ = spec.integrator
+    d["integrator"] = integrator_dict(integ.kind, integ.max_depth, emitter_ids(spec), hide_emitters=True)
+    scene = mi.load_dict(d)
+    return BatchScene(scene, scene.integrator(), rows, meshes, n_slots, spacing, reach)
+
+
+def _batch_sensor(mi, specs: list[SceneSpec], bs: BatchScene):
+    """One `batch` sensor: slot b's orthographic camera in the cell of its shape, turned by R_b^T."""
+    T = mi.ScalarTransform4f
+    first = _sensor(mi, specs[0])
+    c = specs[0].camera
+    film = dict(first["film"], width=c.width * len(specs))
+    d = {"type": "batch", "film": film, "sampler": first["sampler"]}
+    for b, s in enumerate(specs):
+        sub = _sensor(mi, s)
+        sub.pop("sampler")
+        R = np.asarray(s.shape.rotation, dtype=np.float64)
+        centre = [b * bs.spacing, bs.rows[shape_key(s)] * bs.spacing, 0.0]
+        sub["to_world"] = T().translate(centre) @ _rotation(mi, R.T) @ camera_to_world(mi, c)
+        sub["far_clip"] = c.distance + OBJECT_RADIUS
+        d[f"camera{b}"] = sub
+    return mi.load_dict(d)
+
+
+def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, timer: StageTimer | None):
+    """The lights, face parts and part BSDFs of every slot (and each frame's face parts, for its truth)."""
+    import drjit as dr
+
+    B, K = len(specs), len(specs[0].lights)
+    F = max(len(f) for _, f in bs.meshes.values())
+    P = max(len(s.materials) for s in specs)
+    dirs = np.zeros((B, K, 3), np.float32)
+    rgb = np.zeros((B, K, 3), np.float32)
+    face_part = np.zeros((B, F), np.uint32)
+    parts, keep = [], []
+    table = dr.zeros(mi.BSDFPtr, B * P)
+    for b, s in enumerate(specs):
+        R = np.asarray(s.shape.rotation, dtype=np.float64)
+        for k, l in enumerate(s.lights):
+            dirs[b, k] = R.T @ np.asarray(l.direction, dtype=np.float64)
+            rgb[b, k] = l.rgb
+        v, f = bs.meshes[shape_key(s)]
+        with stage(timer, "mesh"):  # the split of the rotated mesh, exactly as the unbatched frame's
+            v32 = rotated_vertices(s.shape, v).astype(np.float32)
+            p = split_faces(v32, f.astype(np.uint32), s.split)
+        face_part[b, :len(p)] = p
+        parts.append(p)
+        used = np.flatnonzero(np.bincount(p, minlength=len(s.materials)))
+        for q in sorted(used.tolist(), key=lambda q: (s.materials[q].kind, q)):
+            bsdf = _bsdf(mi, s, q, timer)
+            keep.append(bsdf)
+            dr.scatter(table, mi.BSDFPtr(bsdf), mi.UInt32(b * P + q))
+
+    def opaque(a, cls):
+        x = cls(a)
+        dr.make_opaque(x)
+        return x
+
+    dr.make_opaque(table)
+    ft = FrameTable(n_frames=B, n_lights=K, spacing=bs.spacing, reach=bs.reach,
+                    light_d=tuple(opaque(dirs[..., i].ravel(), mi.Float) for i in range(3)),
+                    light_e=tuple(opaque(rgb[..., i].ravel(), mi.Float) for i in range(3)),
+                    face_part=opaque(face_part.ravel(), mi.UInt32), face_stride=opaque(np.uint32(F), mi.UInt32),
+                    n_parts=P, bsdfs=table, keep=keep)
+    return ft, parts
+
+
+def _truth(mi, scene, sensor, specs: list[SceneSpec], bs: BatchScene, parts: list[np.ndarray]) -> list[tuple]:
+    """`pooled_truth` of every frame from one ray per pixel centre of the whole batch film."""
+    import drjit as dr
+
+    c = specs[0].camera
+    W, H, B = c.width, c.height, len(specs)
+    _, si, valid, n = _centre_hits(mi, scene, sensor, W * B, H)
+    prim = dr.select(valid, si.prim_index, 0)
+    dr.eval(valid, n, si.p, prim)
+    mask_all = np.array(valid, dtype=bool).reshape(H, B, W)
+    n_all = np.stack([np.array(n.x), np.array(n.y), np.array(n.z)], -1).reshape(H, B, W, 3).astype(np.float64)
+    p_all = np.stack([np.array(si.p.x), np.array(si.p.y), np.array(si.p.z)], -1).reshape(H, B, W, 3)
+    prim_all = np.array(prim).reshape(H, B, W)
+    out = []
+    for b, s in enumerate(specs):
+        R = np.asarray(s.shape.rotation, dtype=np.float64)
+        mask = mask_all[:, b].reshape(-1)
+        centre = np.array([b * bs.spacing, bs.rows[shape_key(s)] * bs.spacing, 0.0])
+        normal = n_all[:, b].reshape(-1, 3) @ R.T
+        p = p_all[:, b].reshape(-1, 3).astype(np.float64) - centre
+        depth = (c.distance - p @ R[2]).astype(np.float32)
+        part = np.where(mask, parts[b][prim_all[:, b].reshape(-1)], -1).astype(np.int8)
+        normal, mask, depth, part = _finish_geometry(normal, mask, depth, part, W, H)
+        albedo, blend = constant_appearance(s, part)
+        out.append((normal, mask, depth, part, albedo, blend))
+    return out
+
+
+def render_batch(specs: list[SceneSpec], variant: str | None = None, threads: int | None = None,
+                 per_light: bool = False, timer: StageTimer | None = None,
+                 scenes: BatchScenes | None = None) -> list[Frame]:
+    """Render `specs` (see `batchable`) in one launch; one Frame each, as `render_frame` gives them."""
+    variant = variant or resolve_variant(specs[0].mode)
+    mi = activate(variant, threads)
+    if not batchable(specs, mi):
+        raise ValueError("these frames cannot share a launch (render.batch.batchable)")
+    scenes = scenes if scenes is not None else BatchScenes()
+    bs = scenes.get(specs, mi, timer)
+    table, parts = _frame_table(mi, specs, bs, timer)
+    with stage(timer, "scene update"):
+        sensor = _batch_sensor(mi, specs, bs)
+    try:
+        bs.integrator.set_batch(table)
+        with stage(timer, "ground truth"):
+            truths = _truth(mi, bs.scene, sensor, specs, bs, parts)
+        with stage(timer, "render"):
+            image = mi.render(bs.scene, sensor=sensor, spp=specs[0].integrator.spp, seed=specs[0].integrator.seed)
+            from msps_render.render.multilight import read_emitter_images
+
+            images = read_emitter_images(image, bs.integrator.aov_names(), emitter_ids(specs[0]))
+    finally:
+        bs.integrator.set_batch(None)  # the batch's BSDFs die with it
+    W = specs[0].camera.width
+    return [_frame(mi, s, variant, truths[b], images[:, :, b * W:(b + 1) * W], per_light)
+            for b, s in enumerate(specs)]
