@@ -87,7 +87,7 @@ def test_each_batched_frame_matches_the_lambertian_closed_form(rgb_variant):
 
 def test_batched_truth_is_the_unbatched_truth_and_images_differ_by_noise_only(rgb_variant, paper_specs):
     """paper-train's first 4 frames, batched and one at a time: the same mask and parts, normals and
-    depth to float rounding (the cells sit up to ~30 units out: observed <= 1.2e-4), constant albedo
+    depth to float rounding (the cells sit up to ~80 units out), constant albedo
     equal.  Images: the mean |batched - unbatched| over the object is the mean |seed a - seed b| of
     the unbatched frame (two independent renders differ by sqrt 2 sigma either way): within 15 %
     (observed 0-5 %), and the object's mean radiance within 1 %.  A frame with another frame's lights,
@@ -104,7 +104,10 @@ def test_batched_truth_is_the_unbatched_truth_and_images_differ_by_noise_only(rg
         f, m = batched[b], one.mask
         assert np.array_equal(f.mask, one.mask) and np.array_equal(f.part, one.part), b
         assert m.mean() > 0.15, b
-        assert np.abs(f.normal - one.normal).max() < 1e-3 and np.abs(f.depth - one.depth).max() < 1e-3, b
+        off = np.abs(f.normal - one.normal).max(-1) > 1e-3  # observed <= 3.3e-4, but for ...
+        assert off.sum() <= max(1, 5e-4 * m.sum()), (b, off.sum())  # ... a grazing pixel whose normal's
+        # facing sign follows the rounding (1 of ~7000 seen); its depth still agrees
+        assert np.abs(f.depth - one.depth).max() < 1e-3, b  # observed <= 3e-4
         assert np.array_equal(f.albedo, one.albedo), b
         d_batch = np.abs(f.image - one.image)[m].mean()
         d_seed = np.abs(other.image - one.image)[m].mean()
@@ -112,21 +115,67 @@ def test_batched_truth_is_the_unbatched_truth_and_images_differ_by_noise_only(rg
         assert abs(f.image[m].mean() / one.image[m].mean() - 1) < 0.01, b
 
 
-def test_a_batch_is_deterministic_and_its_frames_do_not_depend_on_the_scene_it_reuses(rgb_variant, paper_specs):
-    """The same batch twice (the second from the worker's kept scene, after another batch) gives the same
-    bytes; a batch scene is built once while its shapes suffice."""
+def test_batched_frames_have_the_unbatched_noise_against_a_converged_reference(rgb_variant, paper_specs):
+    """The Monte-Carlo check: the mean |frame - 256-spp reference| over the object, summed over the
+    shard's 8 frames, batched (B = 8) over unbatched.  Independent random numbers, so the two errors
+    agree only statistically: three trials of 8 frames gave 0.93, 0.97 and 1.04 (frames alone 0.8-1.15),
+    so 12 %.  Lights or materials of another slot, or a ray that wanders into another cell, change
+    the error several-fold."""
+    from msps_render.render.batch import render_batch
+
+    pool = ScenePool()
+    refs = [render_frame(s.model_copy(update={"integrator": s.integrator.model_copy(update={"spp": 256, "seed": 99})}),
+                         rgb_variant, threads=1, scenes=pool) for s in paper_specs]
+    batched = render_batch(paper_specs, rgb_variant, threads=1)
+    alone = [render_frame(s, rgb_variant, threads=1, scenes=pool) for s in paper_specs]
+    err_b = sum(np.abs(f.image - r.image)[r.mask].mean() for f, r in zip(batched, refs))
+    err_1 = sum(np.abs(f.image - r.image)[r.mask].mean() for f, r in zip(alone, refs))
+    assert err_1 > 0 and abs(err_b / err_1 - 1) < 0.12, (err_b, err_1)
+
+
+def test_a_batch_does_not_depend_on_the_batches_before_it(rgb_variant, paper_specs):
+    """The same batch from a new worker, and from one that rendered two other batches first (its kept
+    scene then holds other shapes too, and was built in another order), gives the same bytes: where a
+    shape's cell lies changes a ray's float rounding (a moved firefly differed by 0.34 when cells
+    were numbered in order of appearance), so cells come from the shape alone (`placement`)."""
     from msps_render.render.batch import BatchScenes, render_batch
 
+    fresh = render_batch(paper_specs[:4], rgb_variant, threads=1)
     scenes = BatchScenes()
-    a = render_batch(paper_specs[:4], rgb_variant, threads=1, scenes=scenes)
+    render_batch(paper_specs[5:8] + paper_specs[3:4], rgb_variant, threads=1, scenes=scenes)
     render_batch(paper_specs[4:8], rgb_variant, threads=1, scenes=scenes)
     built = scenes.built
+    after = render_batch(paper_specs[:4], rgb_variant, threads=1, scenes=scenes)
     again = render_batch(paper_specs[:4], rgb_variant, threads=1, scenes=scenes)
-    fresh = render_batch(paper_specs[:4], rgb_variant, threads=1)
-    assert scenes.built == built  # the shapes of the first batch are in the kept scene
-    for f, g, h in zip(a, again, fresh):
-        assert np.array_equal(f.image, g.image) and np.array_equal(f.image, h.image)
-        assert np.array_equal(f.normal, g.normal) and np.array_equal(f.part, h.part)
+    assert scenes.built == built + 1  # the first batch's shapes were not all there; then they are
+    for f, g, h in zip(fresh, after, again):
+        for name in ("image", "normal", "depth", "mask", "part"):
+            assert np.array_equal(getattr(f, name), getattr(g, name)), name
+            assert np.array_equal(getattr(f, name), getattr(h, name)), name
+
+
+def test_placement_is_a_pure_function_of_the_batch_and_never_shares_a_cell(paper_specs):
+    from msps_render.render.batch import home_cell, placement, shape_key
+
+    specs = paper_specs
+    cells = placement(specs)
+    by_shape = {}
+    for s, c in zip(specs, cells):
+        assert by_shape.setdefault(shape_key(s), c) == c  # one cell per shape within a batch
+    assert len(set(by_shape.values())) == len(by_shape)  # and one shape per cell
+    assert placement(specs) == cells and placement(specs[::-1])[::-1] != [] 
+    # two shapes with one home: the later one takes the next cell, the earlier keeps its home
+    a, b = specs[0], specs[1]
+    import msps_render.render.batch as batch
+
+    home = home_cell(shape_key(a))
+    orig = batch.home_cell
+    try:
+        batch.home_cell = lambda key: home
+        ca, cb = placement([a, b])
+        assert ca == home and cb != home and abs((cb[0] * batch.LATTICE + cb[1]) - (ca[0] * batch.LATTICE + ca[1])) == 1
+    finally:
+        batch.home_cell = orig
 
 
 def test_frames_that_cannot_share_a_launch_are_refused(rgb_variant, paper_specs):
@@ -164,8 +213,8 @@ def test_batch_frames_shards(tmp_path):
     assert (tmp_path / "b4" / shard).read_bytes() == (tmp_path / "b4again" / shard).read_bytes()
     with h5py.File(tmp_path / "b1" / shard) as a, h5py.File(tmp_path / "b4" / shard) as b:
         assert np.array_equal(a["patches/yx"][:], b["patches/yx"][:])
-        assert np.array_equal(a["patches/normal"][:], b["patches/normal"][:]) or \
-            np.abs(a["patches/normal"][:].astype(np.float32) - b["patches/normal"][:]).max() < 2e-3
+        dn = np.abs(a["patches/normal"][:].astype(np.float32) - b["patches/normal"][:]).max(-1)
+        assert (dn > 2e-3).mean() < 1e-4  # float16 rounding, but for grazing pixels (see above)
         ia, ib = a["patches/image"][:].astype(np.float32), b["patches/image"][:].astype(np.float32)
         assert not np.array_equal(ia, ib)  # other random numbers ...
         assert abs(ib.mean() / ia.mean() - 1) < 0.01  # ... the same radiance

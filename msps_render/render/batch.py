@@ -22,6 +22,7 @@ part of the config and its hash; a stored spec alone re-renders its frame unbatc
 """
 from __future__ import annotations
 
+import hashlib
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -75,34 +76,69 @@ def layout(spec: SceneSpec) -> tuple[float, float]:
     return max(camera_reach, OBJECT_RADIUS + reach) + OBJECT_RADIUS + 1.0, reach
 
 
+LATTICE = 16  # a shape's home cell is one of LATTICE x LATTICE places in the (y, z) plane
+
+
+def home_cell(key: tuple) -> tuple[int, int]:
+    """Where a shape lives, from the shape alone (a stable hash): never from the worker's history."""
+    h = hashlib.sha256(repr(key).encode()).digest()
+    return h[0] % LATTICE - LATTICE // 2, h[1] % LATTICE - LATTICE // 2
+
+
+def placement(specs: list[SceneSpec]) -> list[tuple[int, int]]:
+    """The (y, z) cell of each frame's shape: its home, or the next free cell (row-major) when a shape
+    earlier in this batch holds it.  A pure function of the batch, so a frame's pixels do not depend
+    on which batches the worker rendered before (the float rounding of a ray does depend on where its
+    cell lies, so cells must be reproducible: tests/test_batch.py)."""
+    taken: dict[tuple[int, int], tuple] = {}
+    where: dict[tuple, tuple[int, int]] = {}
+    for s in specs:
+        k = shape_key(s)
+        if k in where:
+            continue
+        c = home_cell(k)
+        while c in taken:
+            n = (c[0] + LATTICE // 2) * LATTICE + c[1] + LATTICE // 2 + 1
+            c = ((n // LATTICE) % LATTICE - LATTICE // 2, n % LATTICE - LATTICE // 2)
+        taken[c] = k
+        where[k] = c
+    return [where[shape_key(s)] for s in specs]
+
+
 @dataclass
 class BatchScene:
-    """A loaded scene of shape groups instanced in B slots, and what its rows are."""
+    """A loaded scene: the shapes at their cells, each instanced in the B slots along x."""
 
     scene: object
     integrator: object
-    rows: dict  # shape_key -> row r (cells at y = r * spacing)
+    cells: dict  # (y, z) cell -> shape_key
     meshes: dict  # shape_key -> (canonical vertices float64, faces)
     n_slots: int
     spacing: float
     reach: float
 
+    def centre(self, slot: int, cell: tuple[int, int]) -> list[float]:
+        return [slot * self.spacing, cell[0] * self.spacing, cell[1] * self.spacing]
+
 
 class BatchScenes:
-    """The worker's batch scene per batch key (one, in practice), rebuilt only when a batch brings a
-    shape it does not hold (at most `MAX_SHAPES` kept: beyond that, the batch's own shapes)."""
+    """The worker's batch scene, rebuilt only when a batch needs a shape at a cell it does not hold
+    (keeping up to `MAX_SHAPES` earlier placements that do not clash), so a fixed shape pool
+    (paper-train's 9 blobs) is loaded a few times per worker, then never again."""
 
     def __init__(self):
         self._scenes: OrderedDict[tuple, BatchScene] = OrderedDict()
         self._meshes: OrderedDict[tuple, tuple] = OrderedDict()
         self.built = 0
 
-    def get(self, specs: list[SceneSpec], mi, timer: StageTimer | None) -> BatchScene:
+    def get(self, specs: list[SceneSpec], mi, timer: StageTimer | None) -> tuple[BatchScene, list]:
+        """(the scene, each frame's cell)."""
         key = (batch_key(specs[0], mi.variant()), len(specs))
-        wanted = list(dict.fromkeys(shape_key(s) for s in specs))
+        cells = placement(specs)
+        wanted = {c: shape_key(s) for c, s in zip(cells, specs)}
         have = self._scenes.get(key)
-        if have is not None and all(k in have.rows for k in wanted):
-            return have
+        if have is not None and all(have.cells.get(c) == k for c, k in wanted.items()):
+            return have, cells
         with stage(timer, "mesh"):
             for s in specs:
                 k = shape_key(s)
@@ -113,44 +149,48 @@ class BatchScenes:
                         raise ValueError(f"shape {k[1] or k[0]} reaches {r:.2f} from its centre, beyond the "
                                          f"{OBJECT_RADIUS} a batched frame allows")
                     self._meshes[k] = (v, f)
-        keys = list(dict.fromkeys((list(have.rows) if have is not None else []) + wanted))
-        if len(keys) > MAX_SHAPES:
-            keys = wanted
+        kept = {c: k for c, k in (have.cells.items() if have is not None else ()) if c not in wanted}
+        if len(set(kept.values()) | set(wanted.values())) > MAX_SHAPES:
+            kept = {}
         with stage(timer, "scene load"):
-            bs = _build(mi, specs[0], {k: self._meshes[k] for k in keys}, len(specs))
+            bs = _build(mi, specs[0], {**kept, **wanted}, self._meshes, len(specs))
         self._scenes[key] = bs
         self._scenes.move_to_end(key)
         while len(self._scenes) > 1:
             self._scenes.popitem(last=False)
         self.built += 1
-        return bs
+        return bs, cells
 
 
-def _build(mi, spec: SceneSpec, meshes: dict, n_slots: int) -> BatchScene:
+def _build(mi, spec: SceneSpec, cells: dict, meshes: dict, n_slots: int) -> BatchScene:
     spacing, reach = layout(spec)
     T = mi.ScalarTransform4f
     blank = mi.load_dict({"type": "diffuse"})  # never evaluated: the frame table's BSDFs are
     d: dict = {"type": "scene"}
-    rows = {}
-    for r, (k, (v, f)) in enumerate(meshes.items()):
-        props = mi.Properties()
-        props["bsdf"] = blank
-        m, params = mitsuba_mesh(mi, f"shape{r}", v.astype(np.float32), f, vertex_normals(v, f).astype(np.float32),
-                                 props)
-        params.update()
-        d[f"group{r}"] = {"type": "shapegroup", "mesh": m}
+    groups: dict = {}
+    for c, k in sorted(cells.items()):
+        if k not in groups:
+            r = groups[k] = len(groups)
+            v, f = meshes[k]
+            props = mi.Properties()
+            props["bsdf"] = blank
+            m, params = mitsuba_mesh(mi, f"shape{r}", v.astype(np.float32), f,
+                                     vertex_normals(v, f).astype(np.float32), props)
+            params.update()
+            d[f"group{r}"] = {"type": "shapegroup", "mesh": m}
         for b in range(n_slots):
-            d[f"cell{r}_{b}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": f"group{r}"},
-                                 "to_world": T().translate([b * spacing, r * spacing, 0.0])}
-        rows[k] = r
+            d[f"cell{c[0]}_{c[1]}_{b}".replace("-", "m")] = {
+                "type": "instance", "shapegroup": {"type": "ref", "id": f"group{groups[k]}"},
+                "to_world": T().translate([b * spacing, c[0] * spacing, c[1] * spacing])}
     integ = spec.integrator
     d["integrator"] = integrator_dict(integ.kind, integ.max_depth, emitter_ids(spec), hide_emitters=True)
     scene = mi.load_dict(d)
-    return BatchScene(scene, scene.integrator(), rows, meshes, n_slots, spacing, reach)
+    return BatchScene(scene, scene.integrator(), dict(cells), {k: meshes[k] for k in groups}, n_slots,
+                      spacing, reach)
 
 
-def _batch_sensor(mi, specs: list[SceneSpec], bs: BatchScene):
-    """One `batch` sensor: slot b's orthographic camera in the cell of its shape, turned by R_b^T."""
+def _batch_sensor(mi, specs: list[SceneSpec], bs: BatchScene, cells: list):
+    """One `batch` sensor: slot b's orthographic camera in its shape's cell, turned by R_b^T."""
     T = mi.ScalarTransform4f
     first = _sensor(mi, specs[0])
     c = specs[0].camera
@@ -160,8 +200,7 @@ def _batch_sensor(mi, specs: list[SceneSpec], bs: BatchScene):
         sub = _sensor(mi, s)
         sub.pop("sampler")
         R = np.asarray(s.shape.rotation, dtype=np.float64)
-        centre = [b * bs.spacing, bs.rows[shape_key(s)] * bs.spacing, 0.0]
-        sub["to_world"] = T().translate(centre) @ _rotation(mi, R.T) @ camera_to_world(mi, c)
+        sub["to_world"] = T().translate(bs.centre(b, cells[b])) @ _rotation(mi, R.T) @ camera_to_world(mi, c)
         sub["far_clip"] = c.distance + OBJECT_RADIUS
         d[f"camera{b}"] = sub
     return mi.load_dict(d)
@@ -210,7 +249,8 @@ def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, timer: StageTimer |
     return ft, parts
 
 
-def _truth(mi, scene, sensor, specs: list[SceneSpec], bs: BatchScene, parts: list[np.ndarray]) -> list[tuple]:
+def _truth(mi, scene, sensor, specs: list[SceneSpec], bs: BatchScene, cells: list,
+           parts: list[np.ndarray]) -> list[tuple]:
     """`pooled_truth` of every frame from one ray per pixel centre of the whole batch film."""
     import drjit as dr
 
@@ -227,7 +267,7 @@ def _truth(mi, scene, sensor, specs: list[SceneSpec], bs: BatchScene, parts: lis
     for b, s in enumerate(specs):
         R = np.asarray(s.shape.rotation, dtype=np.float64)
         mask = mask_all[:, b].reshape(-1)
-        centre = np.array([b * bs.spacing, bs.rows[shape_key(s)] * bs.spacing, 0.0])
+        centre = np.array(bs.centre(b, cells[b]))
         normal = n_all[:, b].reshape(-1, 3) @ R.T
         p = p_all[:, b].reshape(-1, 3).astype(np.float64) - centre
         depth = (c.distance - p @ R[2]).astype(np.float32)
@@ -247,14 +287,14 @@ def render_batch(specs: list[SceneSpec], variant: str | None = None, threads: in
     if not batchable(specs, mi):
         raise ValueError("these frames cannot share a launch (render.batch.batchable)")
     scenes = scenes if scenes is not None else BatchScenes()
-    bs = scenes.get(specs, mi, timer)
+    bs, cells = scenes.get(specs, mi, timer)
     table, parts = _frame_table(mi, specs, bs, timer)
     with stage(timer, "scene update"):
-        sensor = _batch_sensor(mi, specs, bs)
+        sensor = _batch_sensor(mi, specs, bs, cells)
     try:
         bs.integrator.set_batch(table)
         with stage(timer, "ground truth"):
-            truths = _truth(mi, bs.scene, sensor, specs, bs, parts)
+            truths = _truth(mi, bs.scene, sensor, specs, bs, cells, parts)
         with stage(timer, "render"):
             image = mi.render(bs.scene, sensor=sensor, spp=specs[0].integrator.spp, seed=specs[0].integrator.seed)
             from msps_render.render.multilight import read_emitter_images
