@@ -149,7 +149,6 @@ def _rendered(task: Task, cfg: DatasetConfig, ws: WorkerSettings, timer: StageTi
     d = cfg.dataset
     rngs = list(frame_rngs(task, d.frames_per_shard))
     B = d.batch_frames
-    batches = None
     for start in range(0, len(rngs), B):
         group = []
         for j in range(start, min(start + B, len(rngs))):
@@ -164,11 +163,12 @@ def _rendered(task: Task, cfg: DatasetConfig, ws: WorkerSettings, timer: StageTi
 
             mi = activate(ws.variant, ws.threads)
             if batchable(specs, mi):
-                batches = batches if batches is not None else BatchScenes()
+                if scenes.batches is None:  # kept with the worker's pooled scenes, across its shards
+                    scenes.batches = BatchScenes()
                 before = dict(timer.current) if timer is not None else None
                 tr = time.perf_counter()
                 out = render_batch(specs, variant=ws.variant, threads=ws.threads, timer=timer,
-                                   per_light=d.storage.store_per_light, scenes=batches)
+                                   per_light=d.storage.store_per_light, scenes=scenes.batches)
                 share = (time.perf_counter() - tr) / len(specs)
                 rest = _share_stages(timer, before, len(specs))
                 for n, ((j, fseed, spec), frame) in enumerate(zip(group, out)):

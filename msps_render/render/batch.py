@@ -4,21 +4,25 @@ Why: a `paper-train` frame's render kernel is short (~25 ms on a CPU core, ~3 ms
 launch has a fixed cost, so one launch per frame leaves the device waiting on per-frame Python work.
 
 How (the pooled frames of `render.pool` only: repeated shapes, RGB, one-pass, directional lights, no
-environment, no textures):
-- one loaded scene holds every pooled shape this worker has seen as a shape group, instanced once per
-  slot b = 0..B-1 in its own cell of space (slot b at x = b * spacing, shape r at y = r * spacing).
-  The scene never changes while its shapes suffice: no BVH is rebuilt from batch to batch;
-- frame b is seen by its own orthographic camera in slot b's cell of its shape, turned by R^T as in the
-  pooled scene (`render.pool`), and the B cameras form one `batch` sensor (a film B frames wide);
-- the one-pass integrator's batch mode (`multilight.FrameTable`) reads each vertex's frame from its
-  cell and takes that frame's lights and part BSDFs from tables; rays after the camera's stop within
-  `reach` of their start, so a frame's paths never meet another cell;
-- ground truth: one ray per pixel centre of the whole batch film, in the same launch for all frames.
+environment, no textures; orthographic cameras):
+- one loaded scene holds every shape of the batch once, canonical (unrotated), each in its own cell
+  of space (`placement`: a cell from the shape alone).  It stays loaded while its shapes suffice, so
+  a fixed pool (paper-train's 9 blobs) builds its BVHs a few times per worker, then never again.
+  Plain meshes, not instances: drjit traces a call over shapes for every shape alive, so B
+  instances per shape made every kernel slower;
+- frame b is seen by its own orthographic camera aimed at its shape's cell, turned by R_b^T as in the
+  pooled scene (`render.pool`), standing `distance + b * STEP` from the cell's centre (an orthographic
+  image does not depend on that distance): the B cameras form one `batch` sensor (a film B frames
+  wide), and a camera ray's slot is read back from that distance (`multilight.FrameTable`);
+- the one-pass integrator's batch mode takes the slot's lights and part BSDFs from tables (the part
+  of a hit face from the slot's own split), and rays after the camera's stop within `reach`, so a
+  frame's paths never meet another cell;
+- ground truth: one ray per pixel centre of the whole batch film, one launch for all frames.
 
-The images are those of the same frames rendered one at a time in distribution, not bit for bit
-(other random numbers: the B frames share one sampler; tests/test_batch.py measures it), so B is
-part of the config and its hash; a stored spec alone re-renders its frame unbatched, and the shard
-(`msps render` of its config and seed) reproduces the batched pixels.
+The images equal the same frames rendered one at a time in distribution, not bit for bit (the B
+frames share one sampler; tests/test_batch.py measures it), so B is part of the config and its hash;
+a stored spec alone re-renders its frame unbatched, and its shard (`msps render` of the config and
+seed) reproduces the batched pixels.
 """
 from __future__ import annotations
 
@@ -63,16 +67,19 @@ def batchable(specs: list[SceneSpec], mi) -> bool:
             and len({batch_key(s, mi.variant()) for s in specs}) == 1)
 
 
-def layout(spec: SceneSpec) -> tuple[float, float]:
+STEP = 0.25  # slot b's camera stands distance + b * STEP from its cell's centre
+
+
+def layout(spec: SceneSpec, n_slots: int) -> tuple[float, float]:
     """(spacing of the cells, reach of every ray after the camera's).
     A later ray starts on the object (within `OBJECT_RADIUS` of its cell's centre) and any surface that
     can shadow it is within `2 * OBJECT_RADIUS`: `reach` is a little more.  A camera ray runs from its
-    camera (`distance` from the centre, at most `extent * sqrt 2` off the axis) to the far clip,
-    `OBJECT_RADIUS` past the centre.  Cells are far enough apart that neither comes within
-    `OBJECT_RADIUS` of another cell's centre."""
+    camera (the farthest stands `distance + (B - 1) * STEP` from the centre, at most `extent * sqrt 2`
+    off the axis) to the far clip, `OBJECT_RADIUS` past the centre.  Cells are far enough apart that
+    neither comes within `OBJECT_RADIUS` of another cell's centre."""
     c = spec.camera
     reach = 2.0 * OBJECT_RADIUS + 0.5
-    camera_reach = float(np.hypot(c.distance, c.extent * np.sqrt(2.0)))
+    camera_reach = float(np.hypot(c.distance + (n_slots - 1) * STEP, c.extent * np.sqrt(2.0)))
     return max(camera_reach, OBJECT_RADIUS + reach) + OBJECT_RADIUS + 1.0, reach
 
 
@@ -107,18 +114,17 @@ def placement(specs: list[SceneSpec]) -> list[tuple[int, int]]:
 
 @dataclass
 class BatchScene:
-    """A loaded scene: the shapes at their cells, each instanced in the B slots along x."""
+    """A loaded scene: each shape once, canonical, at the centre of its cell."""
 
     scene: object
     integrator: object
-    cells: dict  # (y, z) cell -> shape_key
+    cells: dict  # (i, j) cell -> shape_key
     meshes: dict  # shape_key -> (canonical vertices float64, faces)
-    n_slots: int
     spacing: float
     reach: float
 
-    def centre(self, slot: int, cell: tuple[int, int]) -> list[float]:
-        return [slot * self.spacing, cell[0] * self.spacing, cell[1] * self.spacing]
+    def centre(self, cell: tuple[int, int]) -> np.ndarray:
+        return np.array([0.0, cell[0] * self.spacing, cell[1] * self.spacing])
 
 
 class BatchScenes:
@@ -152,10 +158,10 @@ class BatchScenes:
         kept = {c: k for c, k in (have.cells.items() if have is not None else ()) if c not in wanted}
         if len(set(kept.values()) | set(wanted.values())) > MAX_SHAPES:
             kept = {}
+        self._scenes.pop(key, None)  # the old scene's shapes die before the new ones are made
         with stage(timer, "scene load"):
             bs = _build(mi, specs[0], {**kept, **wanted}, self._meshes, len(specs))
         self._scenes[key] = bs
-        self._scenes.move_to_end(key)
         while len(self._scenes) > 1:
             self._scenes.popitem(last=False)
         self.built += 1
@@ -163,34 +169,29 @@ class BatchScenes:
 
 
 def _build(mi, spec: SceneSpec, cells: dict, meshes: dict, n_slots: int) -> BatchScene:
-    spacing, reach = layout(spec)
-    T = mi.ScalarTransform4f
+    spacing, reach = layout(spec, n_slots)
     blank = mi.load_dict({"type": "diffuse"})  # never evaluated: the frame table's BSDFs are
     d: dict = {"type": "scene"}
-    groups: dict = {}
     for c, k in sorted(cells.items()):
-        if k not in groups:
-            r = groups[k] = len(groups)
-            v, f = meshes[k]
-            props = mi.Properties()
-            props["bsdf"] = blank
-            m, params = mitsuba_mesh(mi, f"shape{r}", v.astype(np.float32), f,
-                                     vertex_normals(v, f).astype(np.float32), props)
-            params.update()
-            d[f"group{r}"] = {"type": "shapegroup", "mesh": m}
-        for b in range(n_slots):
-            d[f"cell{c[0]}_{c[1]}_{b}".replace("-", "m")] = {
-                "type": "instance", "shapegroup": {"type": "ref", "id": f"group{groups[k]}"},
-                "to_world": T().translate([b * spacing, c[0] * spacing, c[1] * spacing])}
+        v, f = meshes[k]
+        props = mi.Properties()
+        props["bsdf"] = blank
+        centre = np.array([0.0, c[0] * spacing, c[1] * spacing])
+        name = f"cell{c[0]}_{c[1]}".replace("-", "m")
+        m, params = mitsuba_mesh(mi, name, (v + centre).astype(np.float32), f,
+                                 vertex_normals(v, f).astype(np.float32), props)
+        params.update()
+        d[name] = m
     integ = spec.integrator
     d["integrator"] = integrator_dict(integ.kind, integ.max_depth, emitter_ids(spec), hide_emitters=True)
     scene = mi.load_dict(d)
-    return BatchScene(scene, scene.integrator(), dict(cells), {k: meshes[k] for k in groups}, n_slots,
-                      spacing, reach)
+    used = set(cells.values())
+    return BatchScene(scene, scene.integrator(), dict(cells), {k: meshes[k] for k in used}, spacing, reach)
 
 
 def _batch_sensor(mi, specs: list[SceneSpec], bs: BatchScene, cells: list):
-    """One `batch` sensor: slot b's orthographic camera in its shape's cell, turned by R_b^T."""
+    """One `batch` sensor: slot b's orthographic camera aimed at its shape's cell, turned by R_b^T,
+    standing `distance + b * STEP` from the centre."""
     T = mi.ScalarTransform4f
     first = _sensor(mi, specs[0])
     c = specs[0].camera
@@ -200,8 +201,10 @@ def _batch_sensor(mi, specs: list[SceneSpec], bs: BatchScene, cells: list):
         sub = _sensor(mi, s)
         sub.pop("sampler")
         R = np.asarray(s.shape.rotation, dtype=np.float64)
-        sub["to_world"] = T().translate(bs.centre(b, cells[b])) @ _rotation(mi, R.T) @ camera_to_world(mi, c)
-        sub["far_clip"] = c.distance + OBJECT_RADIUS
+        cam = c.model_copy(update={"distance": c.distance + b * STEP})
+        sub["to_world"] = (T().translate(bs.centre(cells[b]).tolist()) @ _rotation(mi, R.T)
+                           @ camera_to_world(mi, cam))
+        sub["far_clip"] = cam.distance + OBJECT_RADIUS
         d[f"camera{b}"] = sub
     return mi.load_dict(d)
 
@@ -216,7 +219,7 @@ def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, timer: StageTimer |
     dirs = np.zeros((B, K, 3), np.float32)
     rgb = np.zeros((B, K, 3), np.float32)
     face_part = np.zeros((B, F), np.uint32)
-    parts, keep = [], []
+    parts, keep, wanted = [], [], []
     table = dr.zeros(mi.BSDFPtr, B * P)
     for b, s in enumerate(specs):
         R = np.asarray(s.shape.rotation, dtype=np.float64)
@@ -230,10 +233,13 @@ def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, timer: StageTimer |
         face_part[b, :len(p)] = p
         parts.append(p)
         used = np.flatnonzero(np.bincount(p, minlength=len(s.materials)))
-        for q in sorted(used.tolist(), key=lambda q: (s.materials[q].kind, q)):
-            bsdf = _bsdf(mi, s, q, timer)
-            keep.append(bsdf)
-            dr.scatter(table, mi.BSDFPtr(bsdf), mi.UInt32(b * P + q))
+        wanted += [(s.materials[q].kind, b, q) for q in used.tolist()]
+    # every BSDF of the batch in the order of its kind: drjit numbers instances in creation order and a
+    # call over them compiles one kernel per order of kinds, so one order per set of kinds
+    for _, b, q in sorted(wanted):
+        bsdf = _bsdf(mi, specs[b], q, timer)
+        keep.append(bsdf)
+        dr.scatter(table, mi.BSDFPtr(bsdf), mi.UInt32(b * P + q))
 
     def opaque(a, cls):
         x = cls(a)
@@ -241,11 +247,12 @@ def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, timer: StageTimer |
         return x
 
     dr.make_opaque(table)
-    ft = FrameTable(n_frames=B, n_lights=K, spacing=bs.spacing, reach=bs.reach,
+    ft = FrameTable(n_frames=B, n_lights=K, spacing=bs.spacing, distance=float(specs[0].camera.distance),
+                    step=STEP, reach=bs.reach,
                     light_d=tuple(opaque(dirs[..., i].ravel(), mi.Float) for i in range(3)),
                     light_e=tuple(opaque(rgb[..., i].ravel(), mi.Float) for i in range(3)),
                     face_part=opaque(face_part.ravel(), mi.UInt32), face_stride=opaque(np.uint32(F), mi.UInt32),
-                    n_parts=P, bsdfs=table, keep=keep)
+                    part_stride=opaque(np.uint32(P), mi.UInt32), bsdfs=table, keep=keep)
     return ft, parts
 
 
@@ -267,7 +274,7 @@ def _truth(mi, scene, sensor, specs: list[SceneSpec], bs: BatchScene, cells: lis
     for b, s in enumerate(specs):
         R = np.asarray(s.shape.rotation, dtype=np.float64)
         mask = mask_all[:, b].reshape(-1)
-        centre = np.array(bs.centre(b, cells[b]))
+        centre = bs.centre(cells[b])
         normal = n_all[:, b].reshape(-1, 3) @ R.T
         p = p_all[:, b].reshape(-1, 3).astype(np.float64) - centre
         depth = (c.distance - p @ R[2]).astype(np.float32)

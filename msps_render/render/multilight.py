@@ -75,22 +75,42 @@ class PartTable:
 @dataclasses.dataclass
 class FrameTable:
     """Batched frames (`render.batch`): what each frame of one launch has of its own, as opaque device
-    arrays indexed by the frame's slot (its cell of space, x = slot * spacing): K directional lights
-    (direction toward the light in the object frame, RGB irradiance), the material part of every face
-    of its mesh, and each part's BSDF.  Rays after the camera's reach at most `reach`, so a frame's
-    paths never leave its cell."""
+    arrays indexed by its slot b: K directional lights (direction toward the light in the object
+    frame, RGB irradiance), the material part of every face of its mesh, and each part's BSDF.
+    Frames of one shape share its mesh (one cell of space per shape); frame b's camera stands
+    `distance + b * step` from the cell's centre, so a camera ray's slot is read from how far its
+    origin is from the centre of the cell it hits, and carried along its path.  Rays after the
+    camera's reach at most `reach`, so a path never leaves its cell."""
 
     n_frames: int
     n_lights: int
-    spacing: float
+    spacing: float  # cells at (0, i * spacing, j * spacing)
+    distance: float  # the frames' camera distance
+    step: float  # slot b's camera is distance + b * step from its cell's centre
     reach: float
     light_d: tuple  # (x, y, z) mi.Float, (B * K,)
     light_e: tuple  # (r, g, b) mi.Float, (B * K,)
     face_part: object  # mi.UInt32 (B * F): the part of face f of slot b's mesh at b * F + f
     face_stride: object  # opaque mi.UInt32: F
-    n_parts: int  # P: slot b's part p has its BSDF at b * P + p
+    part_stride: object  # opaque mi.UInt32 P (a literal would compile a kernel per batch's largest part count):
+    # slot b's part p has its BSDF at b * P + p
     bsdfs: object  # mi.BSDFPtr (B * P)
     keep: list  # the BSDF objects (alive as long as the table)
+
+
+@dataclasses.dataclass
+class BatchPathState:
+    """`PathState` of a batched path: the slot of its frame instead of the environment's MIS state."""
+
+    sampler: object
+    ray: object
+    depth: object
+    active: object
+    valid_ray: object
+    eta: object
+    slot: object
+    beta: object
+    acc: list
 
 
 def channel_names(emitter_id: str, n_channels: int = 3) -> list[str]:
@@ -446,26 +466,30 @@ def _plugin_class(variant: str):
         def _sample_batch(self, scene, sampler, ray, active):
             """`sample` for batched frames (RGB, directional lights from the frame table, no
             environment): the same estimator -- every light at every vertex, BSDF-sampled bounces,
-            Russian roulette -- with each vertex's frame read from its cell, and every ray after
-            the camera's limited to the table's reach."""
+            Russian roulette -- with the frame's slot read at the camera ray's hit (`FrameTable`)
+            and every ray after the camera's limited to the table's reach."""
             tb = self.batch
-            K, B, P = tb.n_lights, tb.n_frames, tb.n_parts
+            K, B, P = tb.n_lights, tb.n_frames, tb.part_stride
             continues = self.max_depth > 2
             ctx = mi.BSDFContext()
 
-            def body(st: PathState) -> tuple[PathState]:
+            def body(st: BatchPathState) -> tuple[BatchPathState]:
                 sampler, ray, depth, active = st.sampler, st.ray, st.depth, st.active
                 si = scene.ray_intersect(ray, mi.RayFlags.All, depth == 0, active)
                 hit = active & si.is_valid()
-                slot = mi.UInt32(dr.clip(dr.round(si.p.x / tb.spacing), 0.0, float(B - 1)))
+                # the camera ray: its slot from how far its origin is from the centre of the cell it hit
+                centre = mi.Point3f(0.0, dr.round(si.p.y / tb.spacing) * tb.spacing,
+                                    dr.round(si.p.z / tb.spacing) * tb.spacing)
+                b = dr.round((dr.dot(centre - ray.o, ray.d) - tb.distance) / tb.step)
+                slot = dr.select(depth == 0, mi.UInt32(dr.clip(b, 0.0, float(B - 1))), st.slot)
                 part = dr.gather(mi.UInt32, tb.face_part, slot * tb.face_stride + si.prim_index, hit)
                 bsdf = dr.gather(mi.BSDFPtr, tb.bsdfs, slot * P + part, hit)
-                acc, beta = list(st.acc), st.beta[0]
+                acc, beta = list(st.acc), st.beta
                 active_next = active & (depth + 1 < self.max_depth) & si.is_valid()
                 flags = bsdf.flags()
                 active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth)
                 transmits = mi.has_flag(flags, mi.BSDFFlags.Transmission)
-                u_em = sampler.next_2d()  # drawn as the unbatched path draws it (unused by delta lights)
+                sampler.next_2d()  # drawn as the unbatched path draws its emitter sample (unused by delta lights)
                 for k in range(K):
                     i = slot * K + k
                     d = mi.Vector3f(*(dr.gather(mi.Float, c, i, active_em) for c in tb.light_d))
@@ -477,8 +501,8 @@ def _plugin_class(variant: str):
                     ok &= ~scene.ray_test(shadow, ok)
                     val = bsdf.eval(ctx, si, wo, ok)
                     acc[k] = dr.select(ok, acc[k] + beta * val * e, acc[k])
-                del u_em
                 st.valid_ray = st.valid_ray | hit
+                st.slot = slot
                 st.acc = acc
                 if not continues:
                     st.active = active & False
@@ -495,15 +519,14 @@ def _plugin_class(variant: str):
                 rr_prob = dr.minimum(beta_max * eta * eta, 0.95)
                 rr_active = depth >= self.rr_depth
                 rr_continue = sampler.next_1d() < rr_prob
-                st.beta = [dr.select(rr_active, beta / rr_prob, beta)]
+                st.beta = dr.select(rr_active, beta / rr_prob, beta)
                 st.depth = depth
                 st.active = active_next & (~rr_active | rr_continue) & (beta_max != 0.0)
                 return (st,)
 
-            start = PathState(sampler=sampler, ray=mi.Ray3f(ray), depth=mi.UInt32(0), active=mi.Bool(active),
-                              valid_ray=mi.Bool(False), eta=mi.Float(1.0), prev_si=dr.zeros(mi.Interaction3f),
-                              prev_pdf=mi.Float(1.0), prev_delta=mi.Bool(True), beta=[mi.Spectrum(1.0)],
-                              acc=[mi.Spectrum(0.0) for _ in range(K)])
+            start = BatchPathState(sampler=sampler, ray=mi.Ray3f(ray), depth=mi.UInt32(0), active=mi.Bool(active),
+                                   valid_ray=mi.Bool(False), eta=mi.Float(1.0), slot=mi.UInt32(0),
+                                   beta=mi.Spectrum(1.0), acc=[mi.Spectrum(0.0) for _ in range(K)])
             (end,) = dr.while_loop(state=(start,), cond=lambda st: st.active, body=body, labels=("path",),
                                    label=PLUGIN_NAME + "_batch")
             aovs, main = [], mi.Spectrum(0.0)

@@ -83,6 +83,7 @@ class ScenePool:
         self.max_scenes = max(1, int(max_scenes))
         self._scenes: OrderedDict[tuple, PooledScene] = OrderedDict()
         self._blank = None  # one BSDF for every pooled mesh (never evaluated: the part table is)
+        self.batches = None  # the worker's `render.batch.BatchScenes` (frames in batches), made on first use
         self.built = 0
         self.reused = 0
 
@@ -91,6 +92,7 @@ class ScenePool:
 
     def clear(self) -> None:
         self._scenes.clear()
+        self.batches = None
 
     def trim(self, keep: int | None) -> None:
         """Keep only the `keep` most recently used scenes (None: `max_scenes`; `render/memory.py`)."""
