@@ -127,6 +127,38 @@ class BatchScene:
         return np.array([0.0, cell[0] * self.spacing, cell[1] * self.spacing])
 
 
+class BsdfSlots:
+    """The batches' BSDFs in one fixed layout of drjit instances.
+
+    Why: a call through a BSDF pointer compiles into the kernel every BSDF instance alive in the process,
+    in drjit's instance order (one more unrelated BSDF alive: 12 new kernels).  A batch holds ~20 BSDFs
+    of a varying mix of kinds, so a new batch compiled (or loaded from disk) a new kernel almost every
+    time.  Here each slot has a kind; a batch's BSDF of kind k replaces the previous BSDF in a slot of
+    kind k (the old one is freed just before the new one is made, which takes its place in drjit's
+    instance order), and slots only ever grow: once a worker has seen its mix, kernels repeat.
+    Slots a batch does not need keep their last BSDF alive (a few MB at most)."""
+
+    def __init__(self):
+        self.slots: list[list] = []  # [kind, bsdf]
+
+    def fill(self, wanted: list) -> list:
+        """[(kind, make)] -> the BSDFs made, in that order."""
+        free: dict[str, list[int]] = {}
+        for i, (kind, _) in enumerate(self.slots):
+            free.setdefault(kind, []).append(i)
+        out = []
+        for kind, make in wanted:
+            if free.get(kind):
+                i = free[kind].pop(0)
+                self.slots[i][1] = None  # freed first: the new BSDF takes its instance id
+            else:
+                i = len(self.slots)
+                self.slots.append([kind, None])
+            self.slots[i][1] = make()
+            out.append(self.slots[i][1])
+        return out
+
+
 class BatchScenes:
     """The worker's batch scene, rebuilt only when a batch needs a shape at a cell it does not hold
     (keeping up to `MAX_SHAPES` earlier placements that do not clash), so a fixed shape pool
@@ -135,6 +167,7 @@ class BatchScenes:
     def __init__(self):
         self._scenes: OrderedDict[tuple, BatchScene] = OrderedDict()
         self._meshes: OrderedDict[tuple, tuple] = OrderedDict()
+        self.bsdfs = BsdfSlots()
         self.built = 0
 
     def get(self, specs: list[SceneSpec], mi, timer: StageTimer | None) -> tuple[BatchScene, list]:
@@ -209,7 +242,7 @@ def _batch_sensor(mi, specs: list[SceneSpec], bs: BatchScene, cells: list):
     return mi.load_dict(d)
 
 
-def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, timer: StageTimer | None):
+def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, slots: "BsdfSlots", timer: StageTimer | None):
     """The lights, face parts and part BSDFs of every slot (and each frame's face parts, for its truth)."""
     import drjit as dr
 
@@ -234,10 +267,8 @@ def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, timer: StageTimer |
         parts.append(p)
         used = np.flatnonzero(np.bincount(p, minlength=len(s.materials)))
         wanted += [(s.materials[q].kind, b, q) for q in used.tolist()]
-    # every BSDF of the batch in the order of its kind: drjit numbers instances in creation order and a
-    # call over them compiles one kernel per order of kinds, so one order per set of kinds
-    for _, b, q in sorted(wanted):
-        bsdf = _bsdf(mi, specs[b], q, timer)
+    made = slots.fill([(kind, lambda b=b, q=q: _bsdf(mi, specs[b], q, timer)) for kind, b, q in sorted(wanted)])
+    for (_, b, q), bsdf in zip(sorted(wanted), made):
         keep.append(bsdf)
         dr.scatter(table, mi.BSDFPtr(bsdf), mi.UInt32(b * P + q))
 
@@ -295,7 +326,7 @@ def render_batch(specs: list[SceneSpec], variant: str | None = None, threads: in
         raise ValueError("these frames cannot share a launch (render.batch.batchable)")
     scenes = scenes if scenes is not None else BatchScenes()
     bs, cells = scenes.get(specs, mi, timer)
-    table, parts = _frame_table(mi, specs, bs, timer)
+    table, parts = _frame_table(mi, specs, bs, scenes.bsdfs, timer)
     with stage(timer, "scene update"):
         sensor = _batch_sensor(mi, specs, bs, cells)
     try:
