@@ -74,11 +74,12 @@ def main() -> None:
               f"same frames after {a.warmup} warm-up frames of each preset)")
         print()
         print("| preset | frames | pipeline s/frame | bare kernel s | bare scene build s | pipeline / kernel | "
-              "build / kernel | pooled frames |")
-        print("|---|---|---|---|---|---|---|---|")
+              "build / kernel | pooled frames | batches |")
+        print("|---|---|---|---|---|---|---|---|---|")
         for r in summary:
             print(f"| {r['preset']} | {r['n']} | {r['pipeline']:.4f} | {r['kernel']:.4f} | {r['build']:.4f} | "
-                  f"**{r['pipeline'] / r['kernel']:.2f}x** | {r['build'] / r['kernel']:.2f}x | {r['pooled']} |")
+                  f"**{r['pipeline'] / r['kernel']:.2f}x** | {r['build'] / r['kernel']:.2f}x | {r['pooled']} | "
+                  f"{r['batched']} |")
 
 
 def bare_costs(specs, variant: str, threads: int, clock=time.perf_counter) -> tuple[list[float], list[float]]:
@@ -199,7 +200,15 @@ def run_preset(preset: str, a) -> dict:
     print("per frame (compiled / disk / new hashes / launches):",
           " ".join(f"{int(c['compiled'])}/{int(c['disk_loads'])}/{int(c['new_hashes'])}/{int(c['launches'])}"
                    for c in timer.counts))
-    result = {"preset": preset, "n": 0, "pooled": f"{scenes.built + scenes.reused}/{n}" if scenes is not None else "-"}
+    batched = getattr(scenes, "batches", None)
+    result = {"preset": preset, "n": 0, "pooled": f"{scenes.built + scenes.reused}/{n}" if scenes is not None else "-",
+              "batched": f"{batched.built} scene builds" if batched is not None else "-"}
+    del batched  # the bare kernel runs alone: drjit compiles every BSDF and shape alive into it
+    if scenes is not None:
+        scenes.clear()
+        import gc
+
+        gc.collect()
     if a.bare_frames > 0:  # the same frames again, each as a fresh scene: Mitsuba's own costs
         specs = [sample_scene(cfg.scene, rng, seed=frame_seed(t, j), frame_index=t.shard_in_condition * fps + j)
                  for t in plan(cfg) for j, rng in enumerate(frame_rngs(t, fps))][w:w + a.bare_frames]

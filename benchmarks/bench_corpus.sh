@@ -10,6 +10,7 @@
 #                     machine too busy for the full one
 #   ROUNDS=3 ...      repeat old/new that many times, alternating which goes first (interleaved runs
 #                     on a shared machine: compare medians)
+#   NEW_SET="dataset.batch_frames=16" ...   a config override for the NEW ref's renders only
 #
 # Each ref is checked out into OUT/src-<ref> (git worktree) and run with this checkout's venv
 # (`PYTHONPATH` = that tree, so presets, brdf/ and the code are the ref's own).  The baked
@@ -51,6 +52,10 @@ shards() {  # --set override of a preset's shard count (empty: the full preset)
   [ -n "$n" ] && echo "--set dataset.n_shards=$n" || true
 }
 
+extra() {  # NEW_SET's override, for the new ref's tree only
+  [ -n "${NEW_SET:-}" ] && [ "$1" = "$newsrc" ] && echo "--set $NEW_SET" || true
+}
+
 for round in $(seq 1 "${ROUNDS:-1}"); do
   order="$oldsrc $newsrc"
   [ $((round % 2)) = 0 ] && order="$newsrc $oldsrc"
@@ -64,7 +69,7 @@ for round in $(seq 1 "${ROUNDS:-1}"); do
       t0=$(date +%s.%N)
       # user + sys CPU seconds of the render and every worker it waited for (bash `times`)
       cpu=$(cd "$s" && HOME="$home" PYTHONPATH="$s" bash -c '"$0" -m msps_render.cli render "$1" --out "$2" \
-          --workers "$3" $4 > "$5" 2>&1; times' "$py" "$preset" "$d" "$workers" "$(shards "$preset")" \
+          --workers "$3" $4 > "$5" 2>&1; times' "$py" "$preset" "$d" "$workers" "$(shards "$preset") $(extra "$s")" \
           "$out/$ref-$preset.log" | awk 'NR==2 {print}')
       t1=$(date +%s.%N)
       cpus=$(echo "$cpu" | awk '{ s = 0; for (i = 1; i <= 2; i++) { split($i, a, "m"); sub("s", "", a[2]); s += a[1] * 60 + a[2] } printf "%.1f", s }')
