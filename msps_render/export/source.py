@@ -99,8 +99,10 @@ def iter_export_frames(root: str | Path, per_light: bool = False, variant: str |
     """Every whole frame; `per_light`: with its per-light images, from the shards or (`rerender`) re-rendered."""
     m = load_manifest(root)
     n = 0
+    batch = dataset_batch_frames(root)
     for e in m.shards_of():
         light_rgb, scenes = read_frame_scenes(m.shard_path(e.name))
+        rendered: dict = {}  # this shard's re-rendered batch, by frame index
         for fr in iter_whole_frames(m.shard_path(e.name), per_light=per_light and not rerender):
             ef = ExportFrame(id=f"{n:04d}-{safe_name(fr.object)}", image=np.asarray(fr.image, np.float32),
                              normal=np.asarray(fr.normal, np.float32), mask=np.asarray(fr.mask, bool),
@@ -109,7 +111,10 @@ def iter_export_frames(root: str | Path, per_light: bool = False, variant: str |
                              materials=fr.materials, condition=fr.condition, shard=fr.shard, index=fr.index,
                              scene_json=scenes[fr.index], env_ratio=fr.env_ratio)
             if per_light and rerender:
-                ef.per_light, ef.env_image = rerender_per_light(ef, variant)
+                if batch > 1:
+                    ef.per_light, ef.env_image = rerender_in_batch(ef, scenes, batch, rendered, variant)
+                else:
+                    ef.per_light, ef.env_image = rerender_per_light(ef, variant)
                 ef.per_light_source = "re-rendered"
                 if ef.env_ratio > 0 and ef.env_image is None:  # never drop the environment light silently
                     raise InputError(f"{m.shard_path(e.name)}: frame {fr.index}",
@@ -149,6 +154,36 @@ def rerender_per_light(ef: ExportFrame, variant: str | None = None) -> tuple[np.
     fr = render_frame(spec, variant=variant, per_light=True)
     env = None if fr.env_image is None else np.asarray(fr.env_image[..., :3], np.float32)
     return np.asarray(fr.per_light, np.float32), env
+
+
+def rerender_in_batch(ef: ExportFrame, scenes: list[str], batch: int, rendered: dict,
+                      variant: str | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """`rerender_per_light` of a frame of a dataset rendered `batch` frames per launch
+    (`dataset.batch_frames`): its whole batch is rendered again as the worker rendered it (frames
+    j // batch * batch onward of its shard; render/batch.py), so its pixels are the shard's.  A
+    group that could not share a launch was rendered frame by frame, and is again."""
+    if ef.index not in rendered:
+        from msps_render.render.batch import batchable, render_batch
+        from msps_render.render.variant import activate, resolve_variant
+
+        rendered.clear()
+        start = ef.index // batch * batch
+        group = list(range(start, min(start + batch, len(scenes))))
+        specs = [SceneSpec.from_json(scenes[j], f"{ef.shard}: frame {j}") for j in group]
+        variant = variant or resolve_variant(specs[0].mode)
+        if batchable(specs, activate(variant)):
+            rendered.update(zip(group, render_batch(specs, variant=variant, per_light=True)))
+        else:
+            rendered.update((j, render_frame(s, variant=variant, per_light=True)) for j, s in zip(group, specs))
+    fr = rendered[ef.index]
+    env = None if fr.env_image is None else np.asarray(fr.env_image[..., :3], np.float32)
+    return np.asarray(fr.per_light, np.float32), env
+
+
+def dataset_batch_frames(root: str | Path) -> int:
+    """Frames per kernel launch the dataset was rendered with (`dataset.batch_frames`; 1 when absent)."""
+    cfg = (read_manifest(root) or {}).get("config") or {}
+    return int(((cfg.get("dataset") or {}) if isinstance(cfg, dict) else {}).get("batch_frames", 1))
 
 
 def dataset_variant(root: str | Path) -> str | None:
