@@ -242,3 +242,18 @@ def test_an_export_re_renders_a_batched_frame_to_its_stored_pixels(tmp_path):
     alone, _ = rerender_per_light(ef)
     m = ef.mask
     assert np.abs(alone.sum(0) - ef.image)[m].max() / ef.image[m].max() > 1e-3  # the check above means something
+
+
+def test_many_lights_cap_the_frames_per_launch_by_the_memory_budget():
+    """A batch's film holds N images of each frame: 8 frames of 64 lights took 930 MiB of a worker, 2
+    took 580, so beyond three lights at most 128 // N frames share a launch; the groups of a shard are
+    a pure function of its config (the worker and an export's re-render both use `launch_groups`)."""
+    from msps_render.render.batch import frames_per_launch, launch_groups
+
+    def spec(n_lights):
+        return _balls(1)[0].model_copy(update={"lights": tuple(_balls(1)[0].lights[:1]) * n_lights})
+
+    assert [frames_per_launch(8, spec(n)) for n in (1, 3, 8, 64, 96)] == [8, 8, 8, 2, 1]
+    assert frames_per_launch(1, spec(3)) == 1
+    assert [list(g) for g in launch_groups(7, 4, lambda j: spec(3))] == [[0, 1, 2, 3], [4, 5, 6]]
+    assert [list(g) for g in launch_groups(5, 8, lambda j: spec(64))] == [[0, 1], [2, 3], [4]]

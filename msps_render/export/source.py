@@ -159,17 +159,19 @@ def rerender_per_light(ef: ExportFrame, variant: str | None = None) -> tuple[np.
 def rerender_in_batch(ef: ExportFrame, scenes: list[str], batch: int, rendered: dict,
                       variant: str | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """`rerender_per_light` of a frame of a dataset rendered `batch` frames per launch
-    (`dataset.batch_frames`): its whole batch is rendered again as the worker rendered it (frames
-    j // batch * batch onward of its shard; render/batch.py), so its pixels are the shard's.  A
-    group that could not share a launch was rendered frame by frame, and is again."""
+    (`dataset.batch_frames`): its whole batch is rendered again as the worker rendered it (the same
+    groups, `render.batch.launch_groups`), so its pixels are the shard's.  A group that could not
+    share a launch was rendered frame by frame, and is again."""
     if ef.index not in rendered:
-        from msps_render.render.batch import batchable, render_batch
+        from msps_render.render.batch import batchable, launch_groups, render_batch
         from msps_render.render.variant import activate, resolve_variant
 
+        def spec_of(j: int) -> SceneSpec:
+            return SceneSpec.from_json(scenes[j], f"{ef.shard}: frame {j}")
+
         rendered.clear()
-        start = ef.index // batch * batch
-        group = list(range(start, min(start + batch, len(scenes))))
-        specs = [SceneSpec.from_json(scenes[j], f"{ef.shard}: frame {j}") for j in group]
+        group = next(g for g in launch_groups(len(scenes), batch, spec_of) if ef.index in g)
+        specs = [spec_of(j) for j in group]
         variant = variant or resolve_variant(specs[0].mode)
         if batchable(specs, activate(variant)):
             rendered.update(zip(group, render_batch(specs, variant=variant, per_light=True)))

@@ -35,6 +35,7 @@ from msps_render.render.sensor import apply_sensor
 from msps_render.render.shadows import render_shadows
 from msps_render.render.variant import activate, mitsuba_info
 from msps_render.scene.sample import sample_scene
+from msps_render.scene.spec import SceneSpec
 from msps_render.timing import StageTimer, stage
 
 
@@ -143,21 +144,34 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
 def _rendered(task: Task, cfg: DatasetConfig, ws: WorkerSettings, timer: StageTimer | None, scenes: ScenePool):
     """(j, frame seed, spec, frame, render seconds) of each frame of the shard, in order.
 
-    Frames are sampled `dataset.batch_frames` at a time; a group that can share one kernel launch
+    Frames are sampled a launch's group at a time (`render.batch.launch_groups`: `dataset.batch_frames`,
+    capped by the memory budget for many lights); a group that can share one kernel launch
     (`render.batch.batchable`) is rendered by `render_batch`, any other frame alone.  With a timer,
     a batch's stage times are shared out evenly over its frames (a frame's row stays its cost)."""
     d = cfg.dataset
     rngs = list(frame_rngs(task, d.frames_per_shard))
-    B = d.batch_frames
-    for start in range(0, len(rngs), B):
-        group = []
-        for j in range(start, min(start + B, len(rngs))):
+    sampled: dict[int, tuple] = {}
+
+    def spec_of(j: int) -> SceneSpec:
+        if j not in sampled:
             fseed = frame_seed(task, j)
             with stage(timer, "sample"):
-                spec = sample_scene(cfg.scene, rngs[j], seed=fseed,
-                                    frame_index=task.shard_in_condition * d.frames_per_shard + j)
-            group.append((j, fseed, spec))
-        specs = [g[2] for g in group]
+                sampled[j] = (fseed, sample_scene(cfg.scene, rngs[j], seed=fseed,
+                                                  frame_index=task.shard_in_condition * d.frames_per_shard + j))
+        return sampled[j][1]
+
+    if d.batch_frames > 1:
+        from msps_render.render.batch import launch_groups
+
+        groups = launch_groups(len(rngs), d.batch_frames, spec_of)
+    else:
+        groups = (range(j, j + 1) for j in range(len(rngs)))
+    for g in groups:
+        group = []
+        for j in g:
+            spec = spec_of(j)
+            group.append((j, sampled.pop(j)[0], spec))
+        specs = [s for _, _, s in group]
         if len(specs) > 1:
             from msps_render.render.batch import BatchScenes, batchable, render_batch
 

@@ -29,23 +29,27 @@ from __future__ import annotations
 import hashlib
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 
 from msps_render.frame import Frame
+from msps_render.render.memory import frame_budget
 from msps_render.render.ground_truth import _centre_hits, _finish_geometry, constant_appearance
 from msps_render.render.multilight import FrameTable, integrator_dict
 from msps_render.render.pool import POOLED_SHAPES, _rotation, poolable
 from msps_render.render.render import _frame
 from msps_render.render.scene_dict import _bsdf, _sensor, camera_to_world, emitter_ids, mitsuba_mesh
 from msps_render.render.variant import activate, resolve_variant
+from msps_render.scene.families import crease_normals
 from msps_render.scene.geometry import vertex_normals
 from msps_render.scene.shapes import canonical_mesh, rotated_vertices, split_faces
 from msps_render.scene.spec import SceneSpec
 from msps_render.timing import StageTimer, stage
 
 OBJECT_RADIUS = 1.5  # a batched shape must fit in this ball about its cell's centre (scene units)
-MAX_SHAPES = 16  # shape groups one batch scene keeps (paper-train draws from 9)
+MAX_SHAPES = 16  # shapes one batch scene keeps (paper-train draws from 9)
+SHAPES_REMEMBERED = 256  # how many recent shapes' batch counts a worker keeps (a shape seen twice is kept)
 
 
 def batch_key(spec: SceneSpec, variant: str) -> tuple:
@@ -59,12 +63,43 @@ def shape_key(spec: SceneSpec) -> tuple:
     return (s.kind, s.name, tuple(s.sh_coeffs), s.subdivisions, tuple(sorted(s.params.items())), float(s.radius))
 
 
+BATCHED_SHAPES = POOLED_SHAPES + ("procedural",)  # canonical meshes; procedural creases split unrotated
+
+
 def batchable(specs: list[SceneSpec], mi) -> bool:
-    """Can these frames share one launch?  Pooled frames (`pool.poolable`) seen by orthographic
-    cameras (`layout` bounds their rays), with one batch key."""
-    return (len(specs) > 1 and all(poolable(s, mi) and s.shape.kind in POOLED_SHAPES
-                                   and s.camera.kind == "orthographic" for s in specs)
+    """Can these frames share one launch?  Frames a pooled scene could render (`pool.poolable`), also
+    of procedural shapes, seen by orthographic cameras (`layout` bounds their rays), with one batch key."""
+    return (len(specs) > 1 and all(poolable(s, mi, BATCHED_SHAPES) and s.camera.kind == "orthographic"
+                                   for s in specs)
             and len({batch_key(s, mi.variant()) for s in specs}) == 1)
+
+
+def frames_per_launch(batch_frames: int, spec: SceneSpec) -> int:
+    """How many frames a launch renders for `dataset.batch_frames` and frames like `spec`: the setting,
+    capped by the worker's memory budget for its light count (`render.memory.frame_budget`)."""
+    return max(1, min(int(batch_frames), frame_budget(len(spec.lights)).batch))
+
+
+def launch_groups(n_frames: int, batch_frames: int, spec_of) -> Iterator[range]:
+    """A shard's frames 0..n-1 as its launches take them: consecutive groups of `frames_per_launch`
+    frames (`spec_of(j)`: frame j's scene).  The worker (`pipeline/execute.py`) and an export's
+    re-render (`export/source.py`) both group by it, so a frame is always re-rendered in its batch."""
+    start = 0
+    while start < n_frames:
+        k = frames_per_launch(batch_frames, spec_of(start))
+        yield range(start, min(start + k, n_frames))
+        start += k
+
+
+def batch_mesh(spec: SceneSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vertices float64, faces, vertex normals) of the shape, unrotated: the frame's camera turns instead.
+    Procedural shapes split their vertices at creases as `build_mesh` does, here before the rotation
+    (dihedral angles do not change with it; only float rounding near the threshold can)."""
+    v, f, _ = canonical_mesh(spec.shape)
+    if spec.shape.kind == "procedural":
+        v, f, n = crease_normals(v, f)
+        return np.asarray(v, np.float64), np.asarray(f), np.asarray(n, np.float64)
+    return v, f, vertex_normals(v, f)
 
 
 STEP = 0.25  # slot b's camera stands distance + b * STEP from its cell's centre
@@ -119,7 +154,7 @@ class BatchScene:
     scene: object
     integrator: object
     cells: dict  # (i, j) cell -> shape_key
-    meshes: dict  # shape_key -> (canonical vertices float64, faces)
+    meshes: dict  # shape_key -> (canonical vertices float64, faces, vertex normals)
     spacing: float
     reach: float
 
@@ -166,7 +201,8 @@ class BatchScenes:
 
     def __init__(self):
         self._scenes: OrderedDict[tuple, BatchScene] = OrderedDict()
-        self._meshes: OrderedDict[tuple, tuple] = OrderedDict()
+        self._meshes: dict[tuple, tuple] = {}  # the shapes of the loaded scene and of the batch
+        self._batches_of: OrderedDict[tuple, int] = OrderedDict()  # batches each recent shape was in
         self.bsdfs = BsdfSlots()
         self.built = 0
 
@@ -182,15 +218,24 @@ class BatchScenes:
             for s in specs:
                 k = shape_key(s)
                 if k not in self._meshes:
-                    v, f, _ = canonical_mesh(s.shape)
+                    v, f, n = batch_mesh(s)
                     r = float(np.max(np.linalg.norm(v, axis=1)))
                     if r > OBJECT_RADIUS:
                         raise ValueError(f"shape {k[1] or k[0]} reaches {r:.2f} from its centre, beyond the "
                                          f"{OBJECT_RADIUS} a batched frame allows")
-                    self._meshes[k] = (v, f)
-        kept = {c: k for c, k in (have.cells.items() if have is not None else ()) if c not in wanted}
+                    self._meshes[k] = (v, f, n)
+        for k in dict.fromkeys(wanted.values()):
+            self._batches_of[k] = self._batches_of.pop(k, 0) + 1
+        while len(self._batches_of) > SHAPES_REMEMBERED:
+            self._batches_of.popitem(last=False)
+        # earlier shapes stay only if shapes repeat (a fixed pool); new shapes every frame would only
+        # make every build longer
+        kept = {c: k for c, k in (have.cells.items() if have is not None else ())
+                if c not in wanted and self._batches_of.get(k, 0) > 1}
         if len(set(kept.values()) | set(wanted.values())) > MAX_SHAPES:
             kept = {}
+        live = set(kept.values()) | set(wanted.values())
+        self._meshes = {k: m for k, m in self._meshes.items() if k in live}
         self._scenes.pop(key, None)  # the old scene's shapes die before the new ones are made
         with stage(timer, "scene load"):
             bs = _build(mi, specs[0], {**kept, **wanted}, self._meshes, len(specs))
@@ -206,13 +251,12 @@ def _build(mi, spec: SceneSpec, cells: dict, meshes: dict, n_slots: int) -> Batc
     blank = mi.load_dict({"type": "diffuse"})  # never evaluated: the frame table's BSDFs are
     d: dict = {"type": "scene"}
     for c, k in sorted(cells.items()):
-        v, f = meshes[k]
+        v, f, n = meshes[k]
         props = mi.Properties()
         props["bsdf"] = blank
         centre = np.array([0.0, c[0] * spacing, c[1] * spacing])
         name = f"cell{c[0]}_{c[1]}".replace("-", "m")
-        m, params = mitsuba_mesh(mi, name, (v + centre).astype(np.float32), f,
-                                 vertex_normals(v, f).astype(np.float32), props)
+        m, params = mitsuba_mesh(mi, name, (v + centre).astype(np.float32), f, n.astype(np.float32), props)
         params.update()
         d[name] = m
     integ = spec.integrator
@@ -247,7 +291,7 @@ def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, slots: "BsdfSlots",
     import drjit as dr
 
     B, K = len(specs), len(specs[0].lights)
-    F = max(len(f) for _, f in bs.meshes.values())
+    F = max(len(m[1]) for m in bs.meshes.values())
     P = max(len(s.materials) for s in specs)
     dirs = np.zeros((B, K, 3), np.float32)
     rgb = np.zeros((B, K, 3), np.float32)
@@ -259,7 +303,7 @@ def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, slots: "BsdfSlots",
         for k, l in enumerate(s.lights):
             dirs[b, k] = R.T @ np.asarray(l.direction, dtype=np.float64)
             rgb[b, k] = l.rgb
-        v, f = bs.meshes[shape_key(s)]
+        v, f, _ = bs.meshes[shape_key(s)]
         with stage(timer, "mesh"):  # the split of the rotated mesh, exactly as the unbatched frame's
             v32 = rotated_vertices(s.shape, v).astype(np.float32)
             p = split_faces(v32, f.astype(np.uint32), s.split)
