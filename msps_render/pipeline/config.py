@@ -68,11 +68,12 @@ class DatasetSection(StrictModel):
     n_shards: int = Field(4, ge=1, le=100000, description="shards per condition (one HDF5 file each)")
     frames_per_shard: int = Field(8, ge=1, le=100000, description="rendered frames per shard")
     batch_frames: int = Field(1, ge=1, le=64, description="frames of a shard rendered by one kernel launch "
-                                                          "(at most frames_per_shard) where they can share it: "
-                                                          "pooled shapes, RGB, directional lights, no "
-                                                          "environment (render/batch.py); the pixels differ "
-                                                          "from one frame per launch in noise only "
-                                                          "(docs/benchmarks.md \"Frames in batches\")")
+                                                          "(at most frames_per_shard; beyond 3 lights at most "
+                                                          "128 // lights) where they can share it: RGB, "
+                                                          "directional lights, no environment, no textures "
+                                                          "(render/batch.py); the pixels differ from one "
+                                                          "frame per launch in noise only (docs/benchmarks.md "
+                                                          "\"Frames in batches\")")
     patches: PatchConfig = PatchConfig()
     storage: StorageConfig = StorageConfig()
 
