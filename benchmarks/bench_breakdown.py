@@ -22,6 +22,10 @@ drjit's in-memory cache, moved out of whichever stage launched them), ground
 truth, render, sensor, patchify, release memory, frame record, write (HDF5,
 shared evenly over a shard's frames).
 
+Frames in batches (`--set dataset.batch_frames=8`, issue 45): a batch's stage times are shared out
+evenly over its frames, and the worker's batch scene is freed before the bare kernel is timed (drjit
+compiles every BSDF and shape alive into a kernel, so a live batch scene slowed it by half).
+
 Kernel counts come from drjit's kernel history (`msps_render.render.kernels`):
 launches, compiled by LLVM, loaded from the on-disk cache (~/.drjit), and new
 kernel hashes, per 100 frames over all frames and after `--warmup` frames.
