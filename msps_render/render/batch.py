@@ -312,9 +312,9 @@ def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, slots: "BsdfSlots",
         used = np.flatnonzero(np.bincount(p, minlength=len(s.materials)))
         wanted += [(s.materials[q].kind, b, q) for q in used.tolist()]
     made = slots.fill([(kind, lambda b=b, q=q: _bsdf(mi, specs[b], q, timer)) for kind, b, q in sorted(wanted)])
-    for (_, b, q), bsdf in zip(sorted(wanted), made):
-        keep.append(bsdf)
-        dr.scatter(table, mi.BSDFPtr(bsdf), mi.UInt32(b * P + q))
+    keep.extend(made)
+    # one scatter of all pointers as data (a scatter per BSDF bakes its pointer into a new kernel each time)
+    dr.scatter(table, mi.BSDFPtr(made), mi.UInt32([b * P + q for _, b, q in sorted(wanted)]))
 
     def opaque(a, cls):
         x = cls(a)
