@@ -171,31 +171,36 @@ def _rendered(task: Task, cfg: DatasetConfig, ws: WorkerSettings, timer: StageTi
         for j in g:
             spec = spec_of(j)
             group.append((j, sampled.pop(j)[0], spec))
-        specs = [s for _, _, s in group]
-        if len(specs) > 1:
-            from msps_render.render.batch import BatchScenes, batchable, render_batch
+        yield from _render_group(group, d.storage.store_per_light, ws, timer, scenes)
 
-            mi = activate(ws.variant, ws.threads)
-            if batchable(specs, mi):
-                if scenes.batches is None:  # kept with the worker's pooled scenes, across its shards
-                    scenes.batches = BatchScenes()
-                before = dict(timer.current) if timer is not None else None
-                tr = time.perf_counter()
-                out = render_batch(specs, variant=ws.variant, threads=ws.threads, timer=timer,
-                                   per_light=d.storage.store_per_light, scenes=scenes.batches)
-                share = (time.perf_counter() - tr) / len(specs)
-                rest = _share_stages(timer, before, len(specs))
-                for n, ((j, fseed, spec), frame) in enumerate(zip(group, out)):
-                    if n and timer is not None:
-                        for k, v in rest.items():
-                            timer.add(k, v)
-                    yield j, fseed, spec, frame, share
-                continue
-        for j, fseed, spec in group:
+
+def _render_group(group: list, per_light: bool, ws: WorkerSettings, timer: StageTimer | None, scenes: ScenePool):
+    """One launch's frames [(j, frame seed, spec)]: together (`render.batch.render_batch`) when they can
+    share it, else one at a time.  Yields what `_rendered` yields."""
+    specs = [s for _, _, s in group]
+    if len(specs) > 1:
+        from msps_render.render.batch import BatchScenes, batchable, render_batch
+
+        if batchable(specs, activate(ws.variant, ws.threads)):
+            if scenes.batches is None:  # kept with the worker's pooled scenes, across its shards
+                scenes.batches = BatchScenes()
+            before = dict(timer.current) if timer is not None else None
             tr = time.perf_counter()
-            frame = render_frame(spec, variant=ws.variant, threads=ws.threads, timer=timer,
-                                 per_light=d.storage.store_per_light, scenes=scenes)
-            yield j, fseed, spec, frame, time.perf_counter() - tr
+            out = render_batch(specs, variant=ws.variant, threads=ws.threads, timer=timer, per_light=per_light,
+                               scenes=scenes.batches)
+            share = (time.perf_counter() - tr) / len(specs)
+            rest = _share_stages(timer, before, len(specs))
+            for n, ((j, fseed, spec), frame) in enumerate(zip(group, out)):
+                if n and timer is not None:
+                    for k, v in rest.items():
+                        timer.add(k, v)
+                yield j, fseed, spec, frame, share
+            return
+    for j, fseed, spec in group:
+        tr = time.perf_counter()
+        frame = render_frame(spec, variant=ws.variant, threads=ws.threads, timer=timer, per_light=per_light,
+                             scenes=scenes)
+        yield j, fseed, spec, frame, time.perf_counter() - tr
 
 
 def _share_stages(timer: StageTimer | None, before: dict | None, n: int) -> dict:

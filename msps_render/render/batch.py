@@ -34,8 +34,8 @@ from typing import Iterator
 import numpy as np
 
 from msps_render.frame import Frame
-from msps_render.render.memory import frame_budget
 from msps_render.render.ground_truth import _centre_hits, _finish_geometry, constant_appearance
+from msps_render.render.memory import frame_budget
 from msps_render.render.multilight import FrameTable, integrator_dict
 from msps_render.render.pool import POOLED_SHAPES, _rotation, poolable
 from msps_render.render.render import _frame
