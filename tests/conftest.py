@@ -83,6 +83,20 @@ def _clean_jit():
         pass
 
 
+@pytest.fixture(scope="module")
+def paper_specs() -> list:
+    """The 8 scenes of the first `paper-train` shard (blobs of a 9-shape pool, 2-3 materials):
+    tests/test_pool.py and tests/test_batch.py."""
+    from msps_render.pipeline.config import load_config
+    from msps_render.pipeline.plan import frame_rngs, frame_seed, plan
+    from msps_render.scene.sample import sample_scene
+
+    cfg = load_config("paper-train", ["dataset.n_shards=1"])
+    t = plan(cfg)[0]
+    return [sample_scene(cfg.scene, rng, seed=frame_seed(t, j), frame_index=j)
+            for j, rng in enumerate(frame_rngs(t, cfg.dataset.frames_per_shard))]
+
+
 @pytest.fixture
 def shared_data() -> Path:
     """../shared/data (third-party assets); skip when absent (a user's fresh clone)."""

@@ -45,19 +45,6 @@ def _balls(n: int, kind: str = "direct", spp: int = 8) -> list[SceneSpec]:
     return out
 
 
-@pytest.fixture(scope="module")
-def paper_specs() -> list[SceneSpec]:
-    """The 8 scenes of the first `paper-train` shard (blobs of a 9-shape pool, 2-3 materials)."""
-    from msps_render.pipeline.config import load_config
-    from msps_render.pipeline.plan import frame_rngs, frame_seed, plan
-    from msps_render.scene.sample import sample_scene
-
-    cfg = load_config("paper-train", ["dataset.n_shards=1"])
-    t = plan(cfg)[0]
-    return [sample_scene(cfg.scene, rng, seed=frame_seed(t, j), frame_index=j)
-            for j, rng in enumerate(frame_rngs(t, cfg.dataset.frames_per_shard))]
-
-
 def test_each_batched_frame_matches_the_lambertian_closed_form(rgb_variant):
     """Four balls in one launch: light k's image of frame b is rho/pi E_k max(n.l_k, 0) with n the frame's
     own ground-truth normal (the mesh's shading normal, which the renderer also uses) and l_k its own
@@ -286,3 +273,13 @@ def test_procedural_shapes_batch_with_the_unbatched_truth(rgb_variant):
         off = (np.abs(f.normal - one.normal).max(-1) > 1e-3)[both] | (np.abs(f.depth - one.depth) > 1e-3)[both]
         assert off.mean() < 5e-3, (b, off.mean())
         assert abs(f.image[both].mean() / one.image[both].mean() - 1) < 0.02, b
+
+
+@pytest.mark.parametrize("value", ["0", "65", "eight"])
+def test_a_bad_batch_frames_is_one_line_and_writes_nothing(tmp_path, value):
+    from cli_helpers import cli, one_line_error
+
+    r = cli("render", "paper-train", "--out", tmp_path / "ds", "--set", f"dataset.batch_frames={value}")
+    line = one_line_error(r)
+    assert "dataset.batch_frames" in line, line
+    assert not (tmp_path / "ds").exists()

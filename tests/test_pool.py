@@ -17,19 +17,6 @@ pytest.importorskip("mitsuba")
 ARRAYS = ("image", "normal", "mask", "depth", "part", "albedo", "blend", "per_light")
 
 
-@pytest.fixture(scope="module")
-def paper_specs() -> list[SceneSpec]:
-    """The 8 scenes of the first `paper-train` shard (blobs of a 9-shape pool, 2-3 materials)."""
-    from msps_render.pipeline.config import load_config
-    from msps_render.pipeline.plan import frame_rngs, frame_seed, plan
-    from msps_render.scene.sample import sample_scene
-
-    cfg = load_config("paper-train", ["dataset.n_shards=1"])
-    t = plan(cfg)[0]
-    return [sample_scene(cfg.scene, rng, seed=frame_seed(t, j), frame_index=j)
-            for j, rng in enumerate(frame_rngs(t, cfg.dataset.frames_per_shard))]
-
-
 def _sequence(specs: list[SceneSpec]) -> list[SceneSpec]:
     """Frames that alternate topologies and structures: two blobs back and forth (frames 1 and 2
     are one blob with other rotations, splits and materials), a smaller camera, two lights instead

@@ -36,7 +36,7 @@ import numpy as np
 from msps_render.frame import Frame
 from msps_render.render.ground_truth import _centre_hits, _finish_geometry, constant_appearance
 from msps_render.render.memory import frame_budget
-from msps_render.render.multilight import FrameTable, integrator_dict
+from msps_render.render.multilight import FrameTable, integrator_dict, read_emitter_images
 from msps_render.render.pool import POOLED_SHAPES, _rotation, poolable
 from msps_render.render.render import _frame
 from msps_render.render.scene_dict import _bsdf, _sensor, camera_to_world, emitter_ids, mitsuba_mesh
@@ -379,8 +379,6 @@ def render_batch(specs: list[SceneSpec], variant: str | None = None, threads: in
             truths = _truth(mi, bs.scene, sensor, specs, bs, cells, parts)
         with stage(timer, "render"):
             image = mi.render(bs.scene, sensor=sensor, spp=specs[0].integrator.spp, seed=specs[0].integrator.seed)
-            from msps_render.render.multilight import read_emitter_images
-
             images = read_emitter_images(image, bs.integrator.aov_names(), emitter_ids(specs[0]))
     finally:
         bs.integrator.set_batch(None)  # the batch's BSDFs die with it
