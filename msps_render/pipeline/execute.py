@@ -17,7 +17,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -163,7 +163,8 @@ def _rendered(task: Task, cfg: DatasetConfig, ws: WorkerSettings, timer: StageTi
     if d.batch_frames > 1:
         from msps_render.render.batch import launch_groups
 
-        groups = launch_groups(len(rngs), d.batch_frames, spec_of)
+        groups = _ahead(launch_groups(len(rngs), d.batch_frames, spec_of),
+                        lambda g: _prepare([spec_of(j) for j in g], ws, scenes))
     else:
         groups = (range(j, j + 1) for j in range(len(rngs)))
     for g in groups:
@@ -172,6 +173,27 @@ def _rendered(task: Task, cfg: DatasetConfig, ws: WorkerSettings, timer: StageTi
             spec = spec_of(j)
             group.append((j, sampled.pop(j)[0], spec))
         yield from _render_group(group, d.storage.store_per_light, ws, timer, scenes)
+
+
+def _ahead(groups: Iterator[range], prepare: Callable[[range], None]) -> Iterator[range]:
+    """`groups` as they come, but each next group is drawn (and `prepare`d) before the current one is
+    handed out, so its preparation runs while the current group renders."""
+    nxt = next(groups, None)
+    while nxt is not None:
+        cur, nxt = nxt, next(groups, None)
+        if nxt is not None:
+            prepare(nxt)
+        yield cur
+
+
+def _prepare(specs: list[SceneSpec], ws: WorkerSettings, scenes: ScenePool) -> None:
+    """Start building the shapes of a coming batch in a thread (`render.batch.BatchScenes.prepare`)."""
+    from msps_render.render.batch import BatchScenes, batchable
+
+    if batchable(specs, activate(ws.variant, ws.threads)):
+        if scenes.batches is None:
+            scenes.batches = BatchScenes()
+        scenes.batches.prepare(specs)
 
 
 def _render_group(group: list, per_light: bool, ws: WorkerSettings, timer: StageTimer | None, scenes: ScenePool):

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Iterator
 
@@ -203,8 +204,34 @@ class BatchScenes:
         self._scenes: OrderedDict[tuple, BatchScene] = OrderedDict()
         self._meshes: dict[tuple, tuple] = {}  # the shapes of the loaded scene and of the batch
         self._batches_of: OrderedDict[tuple, int] = OrderedDict()  # batches each recent shape was in
+        self._ahead: dict[tuple, Future] = {}  # shape_key -> its mesh, being built for the next batch
+        self._thread: ThreadPoolExecutor | None = None
         self.bsdfs = BsdfSlots()
         self.built = 0
+
+    def prepare(self, specs: list[SceneSpec]) -> None:
+        """Start building the meshes of a coming batch in a thread, while the current batch renders.
+
+        Why: a procedural shape (`train`: new every frame) takes ~0.1 s of numpy to build, and drjit
+        runs a kernel without holding the GIL, so the next batch's shapes are built on another core
+        (on a GPU, by the CPU that waits for the kernel).  A mesh is a pure function of its shape, so
+        where it is built does not change a byte."""
+        for s in specs:
+            k = shape_key(s)
+            if k not in self._meshes and k not in self._ahead:
+                if self._thread is None:
+                    self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="msps-batch-mesh")
+                self._ahead[k] = self._thread.submit(batch_mesh, s)
+        while len(self._ahead) > 4 * MAX_SHAPES:  # never taken (a batch that failed): dropped
+            self._ahead.pop(next(iter(self._ahead))).cancel()
+
+    def _mesh(self, spec: SceneSpec, key: tuple) -> tuple | None:
+        """The shape's batch mesh when this scene does not hold it yet (the one `prepare` started, else
+        built now); None when it does."""
+        ahead = self._ahead.pop(key, None)
+        if key in self._meshes:
+            return None
+        return ahead.result() if ahead is not None else batch_mesh(spec)
 
     def get(self, specs: list[SceneSpec], mi, timer: StageTimer | None) -> tuple[BatchScene, list]:
         """(the scene, each frame's cell)."""
@@ -217,8 +244,9 @@ class BatchScenes:
         with stage(timer, "mesh"):
             for s in specs:
                 k = shape_key(s)
-                if k not in self._meshes:
-                    v, f, n = batch_mesh(s)
+                got = self._mesh(s, k)
+                if got is not None:
+                    v, f, n = got
                     r = float(np.max(np.linalg.norm(v, axis=1)))
                     if r > OBJECT_RADIUS:
                         raise ValueError(f"shape {k[1] or k[0]} reaches {r:.2f} from its centre, beyond the "
