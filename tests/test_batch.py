@@ -283,3 +283,35 @@ def test_a_bad_batch_frames_is_one_line_and_writes_nothing(tmp_path, value):
     line = one_line_error(r)
     assert "dataset.batch_frames" in line, line
     assert not (tmp_path / "ds").exists()
+
+
+def test_the_next_launchs_shapes_are_built_ahead_in_a_thread_without_changing_a_byte(tmp_path, monkeypatch):
+    """With more than one launch per shard, the next launch's procedural shapes are built in a thread while
+    the current one renders (`BatchScenes.prepare`): the second launch's meshes come from that thread, and
+    the shard is byte-identical to one rendered with every mesh built in the worker's own thread."""
+    import threading
+
+    import msps_render.render.batch as batch
+    from msps_render.pipeline.config import load_config
+    from msps_render.pipeline.run import render_dataset
+
+    built = []
+    real = batch.batch_mesh
+
+    def recorded(spec):
+        built.append(threading.current_thread().name)
+        return real(spec)
+
+    monkeypatch.setattr(batch, "batch_mesh", recorded)
+    cfg = load_config("train", ["dataset.n_shards=1", "dataset.frames_per_shard=4", "dataset.batch_frames=2",
+                                "scene.camera.width=64", "scene.camera.height=64", "scene.integrator.spp=4"])
+    render_dataset(cfg, tmp_path / "ahead", workers=1, progress=False, threads=1)
+    ahead = sorted(built)  # (the thread may finish before the worker's own builds: order by name)
+    assert ahead[:2] == ["MainThread"] * 2, ahead  # the first launch's shapes: nothing was built ahead
+    assert len(ahead) == 4 and all(n.startswith("msps-batch-mesh") for n in ahead[2:]), ahead
+    built.clear()
+    monkeypatch.setattr(batch.BatchScenes, "prepare", lambda self, specs: None)
+    render_dataset(cfg, tmp_path / "inline", workers=1, progress=False, threads=1)
+    assert built == ["MainThread"] * 4
+    shard = "shards/shard-00000.h5"
+    assert (tmp_path / "ahead" / shard).read_bytes() == (tmp_path / "inline" / shard).read_bytes()
