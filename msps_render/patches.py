@@ -41,17 +41,26 @@ def patchify(frame: Frame, size: int = 40, stride: int = 20, min_coverage: float
     y, x = origins[:, 0], origins[:, 1]
     cover = (sat[y + size, x + size] - sat[y, x + size] - sat[y + size, x] + sat[y, x]) / float(size * size)
     keep = origins[cover >= max(min_coverage, 1e-9)]
-    iy = keep[:, 0, None] + np.arange(size)[None, :]
-    ix = keep[:, 1, None] + np.arange(size)[None, :]
-    sel = (iy[:, :, None], ix[:, None, :])
     shots = getattr(frame, "shots", None)  # mask-only stand-ins (plan estimates) carry no shots
     if shots is not None:  # any rig: (n, S, P, P, M), every image of the patch
-        image = np.moveaxis(shots[(slice(None),) + sel], 0, 1).astype(np.float32)
+        image = cut_windows(shots, keep, size, axis=1).astype(np.float32, copy=False)
     else:
-        image = frame.image[sel].astype(np.float32)
+        image = cut_windows(frame.image, keep, size).astype(np.float32, copy=False)
     points = getattr(frame, "points", None)
-    points = points[sel].astype(np.float32) if points is not None else None
+    points = cut_windows(points, keep, size).astype(np.float32, copy=False) if points is not None else None
     shadow = getattr(frame, "shadow", None)  # (L, H, W) -> (n, L, P, P)
-    shadow = np.moveaxis(shadow[(slice(None),) + sel], 0, 1).astype(np.uint8) if shadow is not None else None
-    return Patches(image=image, normal=frame.normal[sel].astype(np.float32),
-                   mask=frame.mask[sel].astype(np.uint8), yx=keep.astype(np.int32), points=points, shadow=shadow)
+    shadow = cut_windows(shadow, keep, size, axis=1).astype(np.uint8, copy=False) if shadow is not None else None
+    return Patches(image=image, normal=cut_windows(frame.normal, keep, size).astype(np.float32, copy=False),
+                   mask=cut_windows(frame.mask, keep, size).astype(np.uint8, copy=False), yx=keep.astype(np.int32),
+                   points=points, shadow=shadow)
+
+
+def cut_windows(a: np.ndarray, origins: np.ndarray, size: int, axis: int = 0) -> np.ndarray:
+    """The size x size windows at `origins` (n, 2) of `a`, whose rows and columns are axes `axis` and
+    `axis + 1`: shape (n, *a.shape[:axis], size, size, *a.shape[axis + 2:]).
+    Why slices, not one fancy-indexed gather: a window is a block of contiguous rows, so n slice copies
+    are ~3x faster than numpy's element-by-element advanced indexing (the same values)."""
+    lead = (slice(None),) * axis
+    if len(origins) == 0:
+        return np.zeros((0, *a.shape[:axis], size, size, *a.shape[axis + 2:]), a.dtype)
+    return np.stack([a[lead + (slice(y, y + size), slice(x, x + size))] for y, x in origins.tolist()])

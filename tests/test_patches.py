@@ -1,0 +1,48 @@
+"""Frame -> patches (msps_render/patches.py): which windows are kept, and what each holds."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from msps_render.patches import cut_windows, patchify, window_origins
+
+
+def _gather(a: np.ndarray, origins: np.ndarray, size: int, axis: int) -> np.ndarray:
+    """The windows by numpy's advanced indexing (the definition `cut_windows` must equal)."""
+    iy = origins[:, 0, None] + np.arange(size)[None, :]
+    ix = origins[:, 1, None] + np.arange(size)[None, :]
+    return np.moveaxis(a[(slice(None),) * axis + (iy[:, :, None], ix[:, None, :])], axis, 0)
+
+
+@pytest.mark.parametrize("shape, axis", [((37, 45, 3), 0), ((37, 45), 0), ((4, 37, 45, 2), 1), ((5, 37, 45), 1)])
+def test_cut_windows_equals_the_advanced_index_gather(shape, axis):
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=shape).astype(np.float32)
+    origins = window_origins(37, 45, 10, 7)[rng.permutation(len(window_origins(37, 45, 10, 7)))[:9]]
+    got = cut_windows(a, origins, 10, axis)
+    assert got.shape == (9, *shape[:axis], 10, 10, *shape[axis + 2:]) and got.dtype == a.dtype
+    assert np.array_equal(got, _gather(a, origins, 10, axis))
+    assert cut_windows(a, origins[:0], 10, axis).shape == (0, *shape[:axis], 10, 10, *shape[axis + 2:])
+
+
+def test_patchify_keeps_the_covered_windows_and_cuts_every_array_the_same_way():
+    """An object covering the left 30 columns of a 40 x 64 frame, 20 px windows at stride 10: the
+    windows at x = 0, 10 are fully covered, x = 20 has 10 / 20 covered (kept at 0.5, not at 0.6)."""
+    H, W = 40, 64
+    mask = np.zeros((H, W), bool)
+    mask[:, :30] = True
+    rng = np.random.default_rng(2)
+    frame = SimpleNamespace(mask=mask, image=rng.random((H, W, 3)).astype(np.float32),
+                            normal=rng.normal(size=(H, W, 3)).astype(np.float32),
+                            shots=None, points=None, shadow=rng.random((4, H, W)) > 0.5)
+    p = patchify(frame, size=20, stride=10, min_coverage=0.5)
+    assert sorted(map(tuple, p.yx.tolist())) == [(y, x) for y in (0, 10, 20) for x in (0, 10, 20)]
+    assert sorted({x for _, x in patchify(frame, 20, 10, 0.6).yx.tolist()}) == [0, 10]
+    for k, (y, x) in enumerate(p.yx.tolist()):
+        assert np.array_equal(p.image[k], frame.image[y:y + 20, x:x + 20])
+        assert np.array_equal(p.normal[k], frame.normal[y:y + 20, x:x + 20])
+        assert np.array_equal(p.mask[k], mask[y:y + 20, x:x + 20].astype(np.uint8))
+        assert np.array_equal(p.shadow[k], frame.shadow[:, y:y + 20, x:x + 20].astype(np.uint8))
+    assert p.image.dtype == np.float32 and p.mask.dtype == np.uint8 and p.shadow.shape == (9, 4, 20, 20)
