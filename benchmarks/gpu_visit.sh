@@ -73,13 +73,14 @@ render() {  # render NAME PRESET WORKERS SHARDS TIMEOUT [extra --set ...]
 }
 render pt-w1 paper-train 1 4 45                       # 32 frames
 render pt-w4 paper-train 4 16 45                      # 128 frames
-# frames in batches (issue 45): B paper-train frames per launch, the same shards otherwise
-render pt-b16-w4 paper-train 4 16 45 --set dataset.batch_frames=${BATCH:-16}
+# frames in batches (issue 45): B paper-train frames per launch; a launch never spans shards, so shards of
+# B frames (8 shards of 16: the same 128 frames as pt-w4)
+render pt-b16-w4 paper-train 4 8 45 --set dataset.batch_frames=${BATCH:-16} --set dataset.frames_per_shard=${BATCH:-16}
 if [ -n "${STEADY_S:-}" ]; then  # STEADY_S=130: steady-state frames/s, each worker count rendering that long
   for w in 1 4 16; do  # 4,000 shards is more than any of them finishes; coarse patches keep the disk small
     steady_start=$(date +%s.%N)
     render steady-w$w paper-train $w 4000 $STEADY_S --set dataset.batch_frames=${BATCH:-16} \
-      --set dataset.patches.stride=40
+      --set dataset.frames_per_shard=${BATCH:-16} --set dataset.patches.stride=40
     python3 - "$W/data/steady-w$w" "$steady_start" >>$OUT/phases.tsv <<'PY'
 import json, sys, time
 m = json.load(open(f"{sys.argv[1]}/dataset.json"))
@@ -91,7 +92,7 @@ fi
 render blobs paper-train 16 64 60 --seed 21           # 512 frames (also a training corpus)
 phase breakdown 45 env MSPS_THREADS=1 python3 benchmarks/bench_breakdown.py --preset paper-train --frames 48 --warmup 16
 phase breakdown-b16 45 env MSPS_THREADS=1 python3 benchmarks/bench_breakdown.py --preset paper-train --frames 64 \
-  --warmup 32 --set dataset.batch_frames=${BATCH:-16}
+  --warmup 32 --set dataset.batch_frames=${BATCH:-16} --set dataset.frames_per_shard=${BATCH:-16}
 render train train 16 48 70                           # 384 frames, 256x256, 32 spp
 render grey30 train-grey-30 16 40 60                  # 320 frames
 render val val 16 6 30                                # 48 frames

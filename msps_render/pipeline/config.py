@@ -70,7 +70,7 @@ class DatasetSection(StrictModel):
     batch_frames: int = Field(1, ge=1, le=64, description="frames of a shard rendered by one kernel launch "
                                                           "(at most frames_per_shard; beyond 3 lights at most "
                                                           "128 // lights) where they can share it: RGB, "
-                                                          "directional lights, no environment, no textures "
+                                                          "directional lights, no environment, orthographic "
                                                           "(render/batch.py); the pixels differ from one "
                                                           "frame per launch in noise only (docs/benchmarks.md "
                                                           "\"Frames in batches\")")

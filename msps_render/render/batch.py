@@ -3,8 +3,7 @@
 Why: a `paper-train` frame's render kernel is short (~25 ms on a CPU core, ~3 ms on a GPU) and each
 launch has a fixed cost, so one launch per frame leaves the device waiting on per-frame Python work.
 
-How (the pooled frames of `render.pool` only: repeated shapes, RGB, one-pass, directional lights, no
-environment, no textures; orthographic cameras):
+How (RGB, one-pass, directional lights, no environment, orthographic cameras; generated shapes):
 - one loaded scene holds every shape of the batch once, canonical (unrotated), each in its own cell
   of space (`placement`: a cell from the shape alone).  It stays loaded while its shapes suffice, so
   a fixed pool (paper-train's 9 blobs) builds its BVHs a few times per worker, then never again.
@@ -17,7 +16,10 @@ environment, no textures; orthographic cameras):
 - the one-pass integrator's batch mode takes the slot's lights and part BSDFs from tables (the part
   of a hit face from the slot's own split), and rays after the camera's stop within `reach`, so a
   frame's paths never meet another cell;
-- ground truth: one ray per pixel centre of the whole batch film, one launch for all frames.
+- ground truth: one ray per pixel centre of the whole batch film, one launch for all frames;
+- textures and measured blends (`train-colour`): a batch with any such frame gives every frame its own
+  mesh (`own_mesh`): its parts' faces with their own vertices and appearance attributes, as the
+  unbatched scene's part meshes are, so a textured BSDF reads the frame's own values at a hit.
 
 The images equal the same frames rendered one at a time in distribution, not bit for bit (the B
 frames share one sampler; tests/test_batch.py measures it), so B is part of the config and its hash;
@@ -36,14 +38,15 @@ import numpy as np
 
 from msps_render.frame import Frame
 from msps_render.render.ground_truth import _centre_hits, _finish_geometry, constant_appearance
+from msps_render.render.textures import ALBEDO, WEIGHT, subdivide_to_edge, vertex_attributes
 from msps_render.render.memory import frame_budget
 from msps_render.render.multilight import FrameTable, integrator_dict, read_emitter_images
-from msps_render.render.pool import POOLED_SHAPES, _rotation, poolable
+from msps_render.render.pool import POOLED_SHAPES, _rotation
 from msps_render.render.render import _frame
-from msps_render.render.scene_dict import _bsdf, _sensor, camera_to_world, emitter_ids, mitsuba_mesh
+from msps_render.render.scene_dict import _bsdf, _sensor, camera_to_world, emitter_ids, mitsuba_mesh, one_pass
 from msps_render.render.variant import activate, resolve_variant
 from msps_render.scene.families import crease_normals
-from msps_render.scene.geometry import vertex_normals
+from msps_render.scene.geometry import TriMesh, vertex_normals
 from msps_render.scene.shapes import canonical_mesh, rotated_vertices, split_faces
 from msps_render.scene.spec import SceneSpec
 from msps_render.timing import StageTimer, stage
@@ -68,11 +71,27 @@ BATCHED_SHAPES = POOLED_SHAPES + ("procedural",)  # canonical meshes; procedural
 
 
 def batchable(specs: list[SceneSpec], mi) -> bool:
-    """Can these frames share one launch?  Frames a pooled scene could render (`pool.poolable`), also
-    of procedural shapes, seen by orthographic cameras (`layout` bounds their rays), with one batch key."""
-    return (len(specs) > 1 and all(poolable(s, mi, BATCHED_SHAPES) and s.camera.kind == "orthographic"
-                                   for s in specs)
+    """Can these frames share one launch?  RGB, one-pass, directional lights, no environment, generated
+    shapes (`BATCHED_SHAPES`), textures and blends allowed, seen by orthographic cameras (`layout` bounds
+    their rays), with one batch key."""
+    return (len(specs) > 1 and all(
+        s.mode == "rgb" and one_pass(s, mi) and s.environment is None and s.shape.kind in BATCHED_SHAPES
+        and all(l.kind == "directional" for l in s.lights) and s.camera.kind == "orthographic" for s in specs)
             and len({batch_key(s, mi.variant()) for s in specs}) == 1)
+
+
+def needs_own_meshes(specs: list[SceneSpec]) -> bool:
+    """Does a frame of the batch have textures or measured blends?  Their BSDFs read per-vertex
+    attributes of the mesh they hit, so then every frame gets its own mesh (`own_mesh`)."""
+    return any(m.texture is not None or m.blend is not None for s in specs for m in s.materials)
+
+
+def mesh_key(spec: SceneSpec, own: bool) -> tuple:
+    """What a batch scene's mesh is made from: the shape alone (shared by every frame of that shape), or,
+    for an own mesh, the whole frame (its split, rotation and materials)."""
+    if not own:
+        return shape_key(spec)
+    return ("own", hashlib.sha256(spec.to_json(indent=None).encode()).hexdigest())
 
 
 def frames_per_launch(batch_frames: int, spec: SceneSpec) -> int:
@@ -90,6 +109,54 @@ def launch_groups(n_frames: int, batch_frames: int, spec_of) -> Iterator[range]:
         k = frames_per_launch(batch_frames, spec_of(start))
         yield range(start, min(start + k, n_frames))
         start += k
+
+
+@dataclass
+class BatchMesh:
+    """A mesh of a batch scene, unrotated (object frame): shared by the frames of its shape, or one
+    frame's own (`own_mesh`: with its face parts and appearance attributes)."""
+
+    vertices: np.ndarray  # float64 (V, 3)
+    faces: np.ndarray  # (F, 3)
+    normals: np.ndarray  # (V, 3)
+    parts: np.ndarray | None = None  # own mesh: the part of every face (fixed: the split is the frame's)
+    attributes: dict | None = None  # own mesh: name -> (V, C) float32 (`render.textures`)
+
+
+def shared_mesh(spec: SceneSpec) -> BatchMesh:
+    return BatchMesh(*batch_mesh(spec))
+
+
+def own_mesh(spec: SceneSpec) -> BatchMesh:
+    """One frame's mesh as the unbatched scene builds its part meshes (`scene_dict._shapes`), unrotated:
+    subdivided for its textures, split into its parts on the rotated vertices, each part's faces with
+    their own vertex copies and its material's attributes (`vertex_attributes`, object frame), the parts
+    one after another in one mesh."""
+    v, f, n = batch_mesh(spec)
+    uv = canonical_mesh(spec.shape)[2] if spec.shape.kind != "procedural" else None
+    textures = [m.texture for m in spec.materials if m.texture is not None]
+    if textures:
+        mesh = subdivide_to_edge(TriMesh(v, f, n, uv), min(t.max_edge for t in textures))
+        v, f, n, uv = np.asarray(mesh.vertices, np.float64), mesh.faces, mesh.normals, mesh.uv
+    part = split_faces(rotated_vertices(spec.shape, v).astype(np.float32), np.asarray(f, np.uint32), spec.split)
+    vs, fs, ns, ps, at = [], [], [], [], {}
+    base = 0
+    for p in range(int(part.max()) + 1 if len(part) else 0):
+        faces = f[part == p]
+        if not len(faces):
+            continue
+        used = np.flatnonzero(np.bincount(faces.ravel(), minlength=len(v)))
+        remap = np.zeros(len(v), np.int64)
+        remap[used] = np.arange(len(used))
+        vs.append(v[used])
+        ns.append(np.asarray(n, np.float64)[used])
+        fs.append(remap[faces] + base)
+        ps.append(np.full(len(faces), p, np.uint32))
+        for name, a in vertex_attributes(spec.materials[p], v[used], ns[-1], None if uv is None else uv[used]).items():
+            at.setdefault(name, []).append(np.asarray(a, np.float32))
+        base += len(used)
+    return BatchMesh(np.concatenate(vs), np.concatenate(fs), np.concatenate(ns), np.concatenate(ps),
+                     {k: np.concatenate(a) for k, a in at.items()})
 
 
 def batch_mesh(spec: SceneSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -128,15 +195,15 @@ def home_cell(key: tuple) -> tuple[int, int]:
     return h[0] % LATTICE - LATTICE // 2, h[1] % LATTICE - LATTICE // 2
 
 
-def placement(specs: list[SceneSpec]) -> list[tuple[int, int]]:
+def placement(specs: list[SceneSpec], keys: list[tuple] | None = None) -> list[tuple[int, int]]:
     """The (y, z) cell of each frame's shape: its home, or the next free cell (row-major) when a shape
     earlier in this batch holds it.  A pure function of the batch, so a frame's pixels do not depend
     on which batches the worker rendered before (the float rounding of a ray does depend on where its
     cell lies, so cells must be reproducible: tests/test_batch.py)."""
+    keys = keys if keys is not None else [shape_key(s) for s in specs]  # (`mesh_key`)
     taken: dict[tuple[int, int], tuple] = {}
     where: dict[tuple, tuple[int, int]] = {}
-    for s in specs:
-        k = shape_key(s)
+    for k in keys:
         if k in where:
             continue
         c = home_cell(k)
@@ -145,7 +212,7 @@ def placement(specs: list[SceneSpec]) -> list[tuple[int, int]]:
             c = ((n // LATTICE) % LATTICE - LATTICE // 2, n % LATTICE - LATTICE // 2)
         taken[c] = k
         where[k] = c
-    return [where[shape_key(s)] for s in specs]
+    return [where[k] for k in keys]
 
 
 @dataclass
@@ -154,8 +221,8 @@ class BatchScene:
 
     scene: object
     integrator: object
-    cells: dict  # (i, j) cell -> shape_key
-    meshes: dict  # shape_key -> (canonical vertices float64, faces, vertex normals)
+    cells: dict  # (i, j) cell -> mesh_key
+    meshes: dict  # mesh_key -> BatchMesh
     spacing: float
     reach: float
 
@@ -204,7 +271,7 @@ class BatchScenes:
         self._scenes: OrderedDict[tuple, BatchScene] = OrderedDict()
         self._meshes: dict[tuple, tuple] = {}  # the shapes of the loaded scene and of the batch
         self._batches_of: OrderedDict[tuple, int] = OrderedDict()  # batches each recent shape was in
-        self._ahead: dict[tuple, Future] = {}  # shape_key -> its mesh, being built for the next batch
+        self._ahead: dict[tuple, Future] = {}  # mesh_key -> its mesh, being built for the next batch
         self._thread: ThreadPoolExecutor | None = None
         self.bsdfs = BsdfSlots()
         self.built = 0
@@ -216,42 +283,46 @@ class BatchScenes:
         runs a kernel without holding the GIL, so the next batch's shapes are built on another core
         (on a GPU, by the CPU that waits for the kernel).  A mesh is a pure function of its shape, so
         where it is built does not change a byte."""
+        own = needs_own_meshes(specs)
         for s in specs:
-            k = shape_key(s)
+            k = mesh_key(s, own)
             if k not in self._meshes and k not in self._ahead:
                 if self._thread is None:
                     self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="msps-batch-mesh")
-                self._ahead[k] = self._thread.submit(batch_mesh, s)
+                self._ahead[k] = self._thread.submit(own_mesh if own else shared_mesh, s)
         while len(self._ahead) > 4 * MAX_SHAPES:  # never taken (a batch that failed): dropped
             self._ahead.pop(next(iter(self._ahead))).cancel()
 
-    def _mesh(self, spec: SceneSpec, key: tuple) -> tuple | None:
+    def _mesh(self, spec: SceneSpec, key: tuple, own: bool) -> BatchMesh | None:
         """The shape's batch mesh when this scene does not hold it yet (the one `prepare` started, else
         built now); None when it does."""
         ahead = self._ahead.pop(key, None)
         if key in self._meshes:
             return None
-        return ahead.result() if ahead is not None else batch_mesh(spec)
+        if ahead is not None:
+            return ahead.result()
+        return own_mesh(spec) if own else shared_mesh(spec)
 
-    def get(self, specs: list[SceneSpec], mi, timer: StageTimer | None) -> tuple[BatchScene, list]:
-        """(the scene, each frame's cell)."""
+    def get(self, specs: list[SceneSpec], mi, timer: StageTimer | None) -> tuple[BatchScene, list, list]:
+        """(the scene, each frame's cell, each frame's `mesh_key`)."""
         key = (batch_key(specs[0], mi.variant()), len(specs))
-        cells = placement(specs)
-        wanted = {c: shape_key(s) for c, s in zip(cells, specs)}
+        own = needs_own_meshes(specs)
+        keys = [mesh_key(s, own) for s in specs]
+        cells = placement(specs, keys)
+        wanted = dict(zip(cells, keys))
         have = self._scenes.get(key)
         if have is not None and all(have.cells.get(c) == k for c, k in wanted.items()):
-            return have, cells
-        with stage(timer, "mesh"):
-            for s in specs:
-                k = shape_key(s)
-                got = self._mesh(s, k)
+            return have, cells, keys
+        with stage(timer, "texture" if own else "mesh"):
+            for s, k in zip(specs, keys):
+                got = self._mesh(s, k, own)
                 if got is not None:
-                    v, f, n = got
-                    r = float(np.max(np.linalg.norm(v, axis=1)))
+                    r = float(np.max(np.linalg.norm(got.vertices, axis=1)))
                     if r > OBJECT_RADIUS:
-                        raise ValueError(f"shape {k[1] or k[0]} reaches {r:.2f} from its centre, beyond the "
+                        name = s.shape.name or s.shape.kind
+                        raise ValueError(f"shape {name} reaches {r:.2f} from its centre, beyond the "
                                          f"{OBJECT_RADIUS} a batched frame allows")
-                    self._meshes[k] = (v, f, n)
+                    self._meshes[k] = got
         for k in dict.fromkeys(wanted.values()):
             self._batches_of[k] = self._batches_of.pop(k, 0) + 1
         while len(self._batches_of) > SHAPES_REMEMBERED:
@@ -271,7 +342,7 @@ class BatchScenes:
         while len(self._scenes) > 1:
             self._scenes.popitem(last=False)
         self.built += 1
-        return bs, cells
+        return bs, cells, keys
 
 
 def _build(mi, spec: SceneSpec, cells: dict, meshes: dict, n_slots: int) -> BatchScene:
@@ -279,12 +350,15 @@ def _build(mi, spec: SceneSpec, cells: dict, meshes: dict, n_slots: int) -> Batc
     blank = mi.load_dict({"type": "diffuse"})  # never evaluated: the frame table's BSDFs are
     d: dict = {"type": "scene"}
     for c, k in sorted(cells.items()):
-        v, f, n = meshes[k]
+        bm = meshes[k]
         props = mi.Properties()
         props["bsdf"] = blank
         centre = np.array([0.0, c[0] * spacing, c[1] * spacing])
         name = f"cell{c[0]}_{c[1]}".replace("-", "m")
-        m, params = mitsuba_mesh(mi, name, (v + centre).astype(np.float32), f, n.astype(np.float32), props)
+        m, params = mitsuba_mesh(mi, name, (bm.vertices + centre).astype(np.float32), bm.faces,
+                                 bm.normals.astype(np.float32), props)
+        for attr, a in (bm.attributes or {}).items():  # as `scene_dict._shapes` adds them (a list: fast)
+            m.add_attribute(attr, a.shape[1], np.ascontiguousarray(a, np.float32).ravel().tolist())
         params.update()
         d[name] = m
     integ = spec.integrator
@@ -314,12 +388,13 @@ def _batch_sensor(mi, specs: list[SceneSpec], bs: BatchScene, cells: list):
     return mi.load_dict(d)
 
 
-def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, slots: "BsdfSlots", timer: StageTimer | None):
+def _frame_table(mi, specs: list[SceneSpec], keys: list, bs: BatchScene, slots: "BsdfSlots",
+                 timer: StageTimer | None):
     """The lights, face parts and part BSDFs of every slot (and each frame's face parts, for its truth)."""
     import drjit as dr
 
     B, K = len(specs), len(specs[0].lights)
-    F = max(len(m[1]) for m in bs.meshes.values())
+    F = max(len(m.faces) for m in bs.meshes.values())
     P = max(len(s.materials) for s in specs)
     dirs = np.zeros((B, K, 3), np.float32)
     rgb = np.zeros((B, K, 3), np.float32)
@@ -331,14 +406,17 @@ def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, slots: "BsdfSlots",
         for k, l in enumerate(s.lights):
             dirs[b, k] = R.T @ np.asarray(l.direction, dtype=np.float64)
             rgb[b, k] = l.rgb
-        v, f, _ = bs.meshes[shape_key(s)]
-        with stage(timer, "mesh"):  # the split of the rotated mesh, exactly as the unbatched frame's
-            v32 = rotated_vertices(s.shape, v).astype(np.float32)
-            p = split_faces(v32, f.astype(np.uint32), s.split)
+        bm = bs.meshes[keys[b]]
+        if bm.parts is not None:  # an own mesh: split when it was made
+            p = bm.parts
+        else:
+            with stage(timer, "mesh"):  # the split of the rotated mesh, exactly as the unbatched frame's
+                v32 = rotated_vertices(s.shape, bm.vertices).astype(np.float32)
+                p = split_faces(v32, bm.faces.astype(np.uint32), s.split)
         face_part[b, :len(p)] = p
         parts.append(p)
         used = np.flatnonzero(np.bincount(p, minlength=len(s.materials)))
-        wanted += [(s.materials[q].kind, b, q) for q in used.tolist()]
+        wanted += [(_slot_kind(s.materials[q]), b, q) for q in used.tolist()]
     made = slots.fill([(kind, lambda b=b, q=q: _bsdf(mi, specs[b], q, timer)) for kind, b, q in sorted(wanted)])
     keep.extend(made)
     # one scatter of all pointers as data (a scatter per BSDF bakes its pointer into a new kernel each time)
@@ -359,6 +437,11 @@ def _frame_table(mi, specs: list[SceneSpec], bs: BatchScene, slots: "BsdfSlots",
     return ft, parts
 
 
+def _slot_kind(m) -> str:
+    """A BSDF slot's kind (`BsdfSlots`): the material kind, and whether a texture or blend reads attributes."""
+    return m.kind + ("+texture" if m.texture is not None else "") + ("+blend" if m.blend is not None else "")
+
+
 def _truth(mi, scene, sensor, specs: list[SceneSpec], bs: BatchScene, cells: list,
            parts: list[np.ndarray]) -> list[tuple]:
     """`pooled_truth` of every frame from one ray per pixel centre of the whole batch film."""
@@ -368,6 +451,13 @@ def _truth(mi, scene, sensor, specs: list[SceneSpec], bs: BatchScene, cells: lis
     W, H, B = c.width, c.height, len(specs)
     _, si, valid, n = _centre_hits(mi, scene, sensor, W * B, H)
     prim = dr.select(valid, si.prim_index, 0)
+    own = all(m.attributes is not None for m in bs.meshes.values())
+    if own:  # every mesh carries the attributes: read them back at the hits, as `appearance_truth` does
+        a = si.shape.eval_attribute_3(ALBEDO, si, valid)
+        w = si.shape.eval_attribute_1(WEIGHT, si, valid)
+        dr.eval(valid, n, si.p, prim, a, w)
+        a_all = np.stack([np.array(a.x), np.array(a.y), np.array(a.z)], -1).reshape(H, B, W, 3)
+        w_all = np.array(w).reshape(H, B, W)
     dr.eval(valid, n, si.p, prim)
     mask_all = np.array(valid, dtype=bool).reshape(H, B, W)
     n_all = np.stack([np.array(n.x), np.array(n.y), np.array(n.z)], -1).reshape(H, B, W, 3).astype(np.float64)
@@ -383,7 +473,11 @@ def _truth(mi, scene, sensor, specs: list[SceneSpec], bs: BatchScene, cells: lis
         depth = (c.distance - p @ R[2]).astype(np.float32)
         part = np.where(mask, parts[b][prim_all[:, b].reshape(-1)], -1).astype(np.int8)
         normal, mask, depth, part = _finish_geometry(normal, mask, depth, part, W, H)
-        albedo, blend = constant_appearance(s, part)
+        if own:
+            albedo = np.where(mask[..., None], a_all[:, b], 0.0).astype(np.float32)
+            blend = np.where(mask, w_all[:, b], 0.0).astype(np.float32)
+        else:
+            albedo, blend = constant_appearance(s, part)
         out.append((normal, mask, depth, part, albedo, blend))
     return out
 
@@ -397,8 +491,8 @@ def render_batch(specs: list[SceneSpec], variant: str | None = None, threads: in
     if not batchable(specs, mi):
         raise ValueError("these frames cannot share a launch (render.batch.batchable)")
     scenes = scenes if scenes is not None else BatchScenes()
-    bs, cells = scenes.get(specs, mi, timer)
-    table, parts = _frame_table(mi, specs, bs, scenes.bsdfs, timer)
+    bs, cells, keys = scenes.get(specs, mi, timer)
+    table, parts = _frame_table(mi, specs, keys, bs, scenes.bsdfs, timer)
     with stage(timer, "scene update"):
         sensor = _batch_sensor(mi, specs, bs, cells)
     try:
