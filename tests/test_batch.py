@@ -208,7 +208,10 @@ def test_batch_frames_shards(tmp_path):
         assert abs(ib.mean() / ia.mean() - 1) < 0.01  # ... the same radiance
 
 
-def test_an_export_re_renders_a_batched_frame_to_its_stored_pixels(tmp_path):
+@pytest.mark.parametrize("preset, extra", [
+    ("paper-train", []),
+    ("train-colour", ["scene.camera.width=64", "scene.camera.height=64", "scene.integrator.spp=4"])])  # textures
+def test_an_export_re_renders_a_batched_frame_to_its_stored_pixels(tmp_path, preset, extra):
     """`msps export --rerender` of a dataset rendered 4 frames per launch re-renders each frame's batch, so
     its per-light images sum to the stored frame (as for unbatched datasets: <= 1e-5 of the brightest
     pixel); a frame re-rendered alone differs by its noise (a few per cent)."""
@@ -217,8 +220,8 @@ def test_an_export_re_renders_a_batched_frame_to_its_stored_pixels(tmp_path):
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.run import render_dataset
 
-    cfg = load_config("paper-train", ["dataset.n_shards=1", "dataset.frames_per_shard=4", "dataset.batch_frames=4",
-                                      "dataset.storage.store_frames=true"])
+    cfg = load_config(preset, ["dataset.n_shards=1", "dataset.frames_per_shard=4", "dataset.batch_frames=4",
+                               "dataset.storage.store_frames=true", *extra])
     render_dataset(cfg, tmp_path / "ds", workers=1, progress=False, threads=1)
     idx = export_dataset(tmp_path / "ds", "diligent", tmp_path / "dl", rerender=True)
     devs = [f["per_light_max_rel_deviation"] for f in idx["frames"]]

@@ -335,12 +335,13 @@ class BatchScenes:
             kept = {}
         live = set(kept.values()) | set(wanted.values())
         self._meshes = {k: m for k, m in self._meshes.items() if k in live}
-        self._scenes.pop(key, None)  # the old scene's shapes die before the new ones are made
+        # the old scene dies (every reference to it) before the new one is made: its memory (meshes,
+        # BVH) is released first
+        have = None
+        self._scenes.clear()
         with stage(timer, "scene load"):
             bs = _build(mi, specs[0], {**kept, **wanted}, self._meshes, len(specs))
         self._scenes[key] = bs
-        while len(self._scenes) > 1:
-            self._scenes.popitem(last=False)
         self.built += 1
         return bs, cells, keys
 
