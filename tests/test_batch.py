@@ -361,3 +361,29 @@ def test_textured_and_blended_frames_batch_with_the_unbatched_truth_and_appearan
     assert not any(verify_dataset(tmp_path / "a").values())
     shard = "shards/shard-00000.h5"
     assert (tmp_path / "a" / shard).read_bytes() == (tmp_path / "b" / shard).read_bytes()
+
+
+def test_own_meshes_are_rebuilt_not_kept_when_their_frames_come_back(rgb_variant):
+    """Own meshes (textured frames) leave only their face parts in the worker once their scene is built,
+    and are never kept for a later scene: frames rendered again after other batches are rebuilt, and
+    give the same pixels as the first time (a batch does not depend on the batches before it)."""
+    from msps_render.pipeline.config import load_config
+    from msps_render.pipeline.plan import frame_rngs, frame_seed, plan
+    from msps_render.render.batch import BatchScenes, needs_own_meshes, render_batch
+    from msps_render.scene.sample import sample_scene
+
+    cfg = load_config("train-colour", ["dataset.n_shards=3", "scene.camera.width=48", "scene.camera.height=48",
+                                       "scene.integrator.spp=2"])
+    groups = [[sample_scene(cfg.scene, rng, seed=frame_seed(t, j), frame_index=j)
+               for j, rng in enumerate(frame_rngs(t, 2))] for t in plan(cfg)]
+    assert all(needs_own_meshes(g) for g in groups)
+    scenes = BatchScenes()
+    first = render_batch(groups[0], rgb_variant, threads=1, scenes=scenes)
+    assert all(m.vertices.size == 0 and m.parts is not None for m in scenes._scenes[next(iter(scenes._scenes))]
+               .meshes.values())  # the arrays are in the scene only
+    for g in (groups[1], groups[0], groups[2]):  # the third keeps nothing of the second (seen twice)
+        again = render_batch(g, rgb_variant, threads=1, scenes=scenes)
+    assert all(f.mask.any() for f in again)
+    again = render_batch(groups[0], rgb_variant, threads=1, scenes=scenes)
+    for a, b in zip(first, again):
+        assert np.array_equal(a.image, b.image) and np.array_equal(a.albedo, b.albedo)

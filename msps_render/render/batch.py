@@ -122,6 +122,19 @@ class BatchMesh:
     parts: np.ndarray | None = None  # own mesh: the part of every face (fixed: the split is the frame's)
     attributes: dict | None = None  # own mesh: name -> (V, C) float32 (`render.textures`)
 
+    @property
+    def n_faces(self) -> int:
+        return len(self.parts) if self.parts is not None else len(self.faces)
+
+    def built(self) -> "BatchMesh":
+        """What a loaded scene still needs of this mesh.  An own mesh keeps only its face parts and the
+        names of its attributes: its arrays (tens of MB for a textured frame) are in the scene now, and
+        no later scene is built from them (own meshes are never kept for the next batch)."""
+        if self.parts is None:
+            return self
+        empty = np.zeros((0, 3))
+        return BatchMesh(empty, empty.astype(np.int64), empty, self.parts, dict.fromkeys(self.attributes or ()))
+
 
 def shared_mesh(spec: SceneSpec) -> BatchMesh:
     return BatchMesh(*batch_mesh(spec))
@@ -330,7 +343,7 @@ class BatchScenes:
         # earlier shapes stay only if shapes repeat (a fixed pool); new shapes every frame would only
         # make every build longer
         kept = {c: k for c, k in (have.cells.items() if have is not None else ())
-                if c not in wanted and self._batches_of.get(k, 0) > 1}
+                if c not in wanted and self._batches_of.get(k, 0) > 1 and k[0] != "own"}
         if len(set(kept.values()) | set(wanted.values())) > MAX_SHAPES:
             kept = {}
         live = set(kept.values()) | set(wanted.values())
@@ -341,6 +354,7 @@ class BatchScenes:
         self._scenes.clear()
         with stage(timer, "scene load"):
             bs = _build(mi, specs[0], {**kept, **wanted}, self._meshes, len(specs))
+        self._meshes = {k: m for k, m in self._meshes.items() if m.parts is None}  # own meshes: in the scene only
         self._scenes[key] = bs
         self.built += 1
         return bs, cells, keys
@@ -366,7 +380,7 @@ def _build(mi, spec: SceneSpec, cells: dict, meshes: dict, n_slots: int) -> Batc
     d["integrator"] = integrator_dict(integ.kind, integ.max_depth, emitter_ids(spec), hide_emitters=True)
     scene = mi.load_dict(d)
     used = set(cells.values())
-    return BatchScene(scene, scene.integrator(), dict(cells), {k: meshes[k] for k in used}, spacing, reach)
+    return BatchScene(scene, scene.integrator(), dict(cells), {k: meshes[k].built() for k in used}, spacing, reach)
 
 
 def _batch_sensor(mi, specs: list[SceneSpec], bs: BatchScene, cells: list):
@@ -395,7 +409,7 @@ def _frame_table(mi, specs: list[SceneSpec], keys: list, bs: BatchScene, slots: 
     import drjit as dr
 
     B, K = len(specs), len(specs[0].lights)
-    F = max(len(m.faces) for m in bs.meshes.values())
+    F = max(m.n_faces for m in bs.meshes.values())
     P = max(len(s.materials) for s in specs)
     dirs = np.zeros((B, K, 3), np.float32)
     rgb = np.zeros((B, K, 3), np.float32)
