@@ -186,14 +186,23 @@ def _ahead(groups: Iterator[range], prepare: Callable[[range], None]) -> Iterato
         yield cur
 
 
-def _prepare(specs: list[SceneSpec], ws: WorkerSettings, scenes: ScenePool) -> None:
-    """Start building the shapes of a coming batch in a thread (`render.batch.BatchScenes.prepare`)."""
+def _batch_scenes(specs: list[SceneSpec], ws: WorkerSettings, scenes: ScenePool):
+    """The worker's `render.batch.BatchScenes` (kept with its pooled scenes, across its shards) when these
+    frames can share a launch (`render.batch.batchable`), else None."""
     from msps_render.render.batch import BatchScenes, batchable
 
-    if batchable(specs, activate(ws.variant, ws.threads)):
-        if scenes.batches is None:
-            scenes.batches = BatchScenes()
-        scenes.batches.prepare(specs)
+    if not batchable(specs, activate(ws.variant, ws.threads)):
+        return None
+    if scenes.batches is None:
+        scenes.batches = BatchScenes()
+    return scenes.batches
+
+
+def _prepare(specs: list[SceneSpec], ws: WorkerSettings, scenes: ScenePool) -> None:
+    """Start building the shapes of a coming batch in a thread (`render.batch.BatchScenes.prepare`)."""
+    batches = _batch_scenes(specs, ws, scenes)
+    if batches is not None:
+        batches.prepare(specs)
 
 
 def _render_group(group: list, per_light: bool, ws: WorkerSettings, timer: StageTimer | None, scenes: ScenePool):
@@ -201,15 +210,14 @@ def _render_group(group: list, per_light: bool, ws: WorkerSettings, timer: Stage
     share it, else one at a time.  Yields what `_rendered` yields."""
     specs = [s for _, _, s in group]
     if len(specs) > 1:
-        from msps_render.render.batch import BatchScenes, batchable, render_batch
+        from msps_render.render.batch import render_batch
 
-        if batchable(specs, activate(ws.variant, ws.threads)):
-            if scenes.batches is None:  # kept with the worker's pooled scenes, across its shards
-                scenes.batches = BatchScenes()
+        batches = _batch_scenes(specs, ws, scenes)
+        if batches is not None:
             before = dict(timer.current) if timer is not None else None
             tr = time.perf_counter()
             out = render_batch(specs, variant=ws.variant, threads=ws.threads, timer=timer, per_light=per_light,
-                               scenes=scenes.batches)
+                               scenes=batches)
             share = (time.perf_counter() - tr) / len(specs)
             rest = _share_stages(timer, before, len(specs))
             for n, ((j, fseed, spec), frame) in enumerate(zip(group, out)):

@@ -41,9 +41,9 @@ from msps_render.render.ground_truth import _centre_hits, _finish_geometry, cons
 from msps_render.render.textures import ALBEDO, WEIGHT, subdivide_to_edge, vertex_attributes
 from msps_render.render.memory import frame_budget
 from msps_render.render.multilight import FrameTable, integrator_dict, read_emitter_images
-from msps_render.render.pool import POOLED_SHAPES, _rotation
+from msps_render.render.pool import POOLED_SHAPES, _rotation, lit_by_table
 from msps_render.render.render import _frame
-from msps_render.render.scene_dict import _bsdf, _sensor, camera_to_world, emitter_ids, mitsuba_mesh, one_pass
+from msps_render.render.scene_dict import _bsdf, _sensor, camera_to_world, emitter_ids, mitsuba_mesh
 from msps_render.render.variant import activate, resolve_variant
 from msps_render.scene.families import crease_normals
 from msps_render.scene.geometry import TriMesh, vertex_normals
@@ -74,9 +74,9 @@ def batchable(specs: list[SceneSpec], mi) -> bool:
     """Can these frames share one launch?  RGB, one-pass, directional lights, no environment, generated
     shapes (`BATCHED_SHAPES`), textures and blends allowed, seen by orthographic cameras (`layout` bounds
     their rays), with one batch key."""
-    return (len(specs) > 1 and all(
-        s.mode == "rgb" and one_pass(s, mi) and s.environment is None and s.shape.kind in BATCHED_SHAPES
-        and all(l.kind == "directional" for l in s.lights) and s.camera.kind == "orthographic" for s in specs)
+    return (len(specs) > 1
+            and all(lit_by_table(s, mi) and s.shape.kind in BATCHED_SHAPES and s.camera.kind == "orthographic"
+                    for s in specs)
             and len({batch_key(s, mi.variant()) for s in specs}) == 1)
 
 

@@ -45,13 +45,17 @@ POOLED_SHAPES = ("blobby", "primitive")  # procedural shapes split vertices at c
 DEFAULT_MAX_SCENES = 16  # >= the 9 blobs of paper-train; a scene is ~3 MB (mesh + BVH)
 
 
-def poolable(spec: SceneSpec, mi, shapes: tuple = POOLED_SHAPES) -> bool:
-    """Can this frame be rendered from a pooled scene (see the module docstring)?  `shapes`: the shape
-    kinds accepted (frames in batches also take procedural ones: render/batch.py)."""
+def lit_by_table(spec: SceneSpec, mi) -> bool:
+    """Can the one-pass integrator take this frame's lights from a table (pooled scenes, frames in
+    batches)?  RGB, a JIT variant, directional lights only, no environment."""
     return (spec.mode == "rgb" and one_pass(spec, mi) and spec.environment is None
-            and spec.shape.kind in shapes and all(l.kind == "directional" for l in spec.lights)
-            and all(m.texture is None for m in spec.materials)
-            and all(m.blend is None for m in spec.materials))
+            and all(l.kind == "directional" for l in spec.lights))
+
+
+def poolable(spec: SceneSpec, mi) -> bool:
+    """Can this frame be rendered from a pooled scene (see the module docstring)?"""
+    return (lit_by_table(spec, mi) and spec.shape.kind in POOLED_SHAPES
+            and all(m.texture is None and m.blend is None for m in spec.materials))
 
 
 def pool_key(spec: SceneSpec, variant: str) -> tuple:
