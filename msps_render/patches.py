@@ -30,8 +30,14 @@ def window_origins(height: int, width: int, size: int, stride: int) -> np.ndarra
     return np.array([(y, x) for y in ys for x in xs], dtype=np.int32).reshape(-1, 2)
 
 
-def patchify(frame: Frame, size: int = 40, stride: int = 20, min_coverage: float = 0.5) -> Patches:
-    """Cut windows whose mask coverage is >= `min_coverage` (fraction of pixels)."""
+def patchify(frame: Frame, size: int = 40, stride: int = 20, min_coverage: float = 0.5,
+             image_dtype: str = "float32", normal_dtype: str = "float32") -> Patches:
+    """Cut windows whose mask coverage is >= `min_coverage` (fraction of pixels).
+
+    `image_dtype` / `normal_dtype`: the patches' dtypes (the shard's storage dtypes).  The whole frame is
+    cast once and then cut: the same values as casting every window (a cast is per value), at a
+    fraction of the work, since a pixel lies in up to (size / stride)^2 windows.  Radiance beyond
+    float16's range in a kept window is a ValueError that says what to do."""
     if not 0.0 <= min_coverage <= 1.0:
         raise ValueError(f"min_coverage must be in [0, 1], got {min_coverage}")
     H, W = frame.mask.shape
@@ -43,16 +49,32 @@ def patchify(frame: Frame, size: int = 40, stride: int = 20, min_coverage: float
     keep = origins[cover >= max(min_coverage, 1e-9)]
     shots = getattr(frame, "shots", None)  # mask-only stand-ins (plan estimates) carry no shots
     if shots is not None:  # any rig: (n, S, P, P, M), every image of the patch
-        image = cut_windows(shots, keep, size, axis=1).astype(np.float32, copy=False)
+        image = _radiance_windows(shots, keep, size, image_dtype, axis=1)
     else:
-        image = cut_windows(frame.image, keep, size).astype(np.float32, copy=False)
+        image = _radiance_windows(frame.image, keep, size, image_dtype)
     points = getattr(frame, "points", None)
     points = cut_windows(points, keep, size).astype(np.float32, copy=False) if points is not None else None
     shadow = getattr(frame, "shadow", None)  # (L, H, W) -> (n, L, P, P)
     shadow = cut_windows(shadow, keep, size, axis=1).astype(np.uint8, copy=False) if shadow is not None else None
-    return Patches(image=image, normal=cut_windows(frame.normal, keep, size).astype(np.float32, copy=False),
-                   mask=cut_windows(frame.mask, keep, size).astype(np.uint8, copy=False), yx=keep.astype(np.int32),
+    return Patches(image=image, normal=cut_windows(_as(frame.normal, normal_dtype), keep, size),
+                   mask=cut_windows(frame.mask.astype(np.uint8, copy=False), keep, size), yx=keep.astype(np.int32),
                    points=points, shadow=shadow)
+
+
+def _as(a: np.ndarray, dtype: str) -> np.ndarray:
+    """`a` as `dtype` by way of float32, as the patches were cut (float32) and then stored: no double
+    rounding differs from that path whatever the frame's own dtype."""
+    return a.astype(np.float32, copy=False).astype(dtype, copy=False)
+
+
+def _radiance_windows(a: np.ndarray, keep: np.ndarray, size: int, dtype: str, axis: int = 0) -> np.ndarray:
+    """`cut_windows` of `a` cast to `dtype` first; float16 overflow in a kept window is refused."""
+    with np.errstate(over="ignore"):  # refused just below when a kept window holds it
+        cast = _as(a, dtype)
+    out = cut_windows(cast, keep, size, axis)
+    if cast.dtype == np.float16 and not np.isfinite(cast).all() and not np.isfinite(out).all():
+        raise ValueError("radiance exceeds float16 range; use image_dtype='float32'")
+    return out
 
 
 def cut_windows(a: np.ndarray, origins: np.ndarray, size: int, axis: int = 0) -> np.ndarray:

@@ -114,8 +114,12 @@ def weights_path(name: str) -> Path | None:
 
 
 def builtin_names() -> list[str]:
-    d = builtin_dir()
-    return sorted(p.stem for p in d.glob("*.h5")) if d.is_dir() else []
+    """Names of the shipped weights (`<name>.h5` files of `builtin_dir`), sorted."""
+    try:
+        with os.scandir(builtin_dir()) as it:  # one listing (every frame's material pool asks)
+            return sorted(e.name[:-3] for e in it if e.name.endswith(".h5") and e.is_file())
+    except OSError:
+        return []
 
 
 @functools.lru_cache(maxsize=256)

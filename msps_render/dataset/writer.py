@@ -65,13 +65,15 @@ def shard_arrays(content: ShardContent, image_dtype: str = "float16", normal_dty
                  ) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
     """(numeric arrays, string arrays) of a shard, by HDF5 key, in the order they are written."""
     p = content.patches
-    img = p.image.astype(image_dtype, copy=False)  # rig patches arrive in the storage dtype already
-    if image_dtype == "float16" and len(p) and not all(np.isfinite(img[i:i + 256]).all() for i in range(0, len(img), 256)):
+    img = p.image.astype(image_dtype, copy=False)  # patches arrive in the storage dtypes (`patchify`)
+    blocks = getattr(img, "blocks", [img])
+    if image_dtype == "float16" and len(p) and not all(np.isfinite(b[i:i + 256]).all()
+                                                       for b in blocks for i in range(0, len(b), 256)):
         raise ValueError("radiance exceeds float16 range; use image_dtype='float32'")  # (checked in slices: no big mask)
     arrays = {
         K.PATCH_IMAGE: img,
-        K.PATCH_NORMAL: p.normal.astype(normal_dtype),
-        K.PATCH_MASK: p.mask.astype(np.uint8),
+        K.PATCH_NORMAL: p.normal.astype(normal_dtype, copy=False),
+        K.PATCH_MASK: p.mask.astype(np.uint8, copy=False),
         K.PATCH_FRAME_INDEX: content.frame_index.astype(np.int32),
         K.PATCH_YX: p.yx.astype(np.int32),
     }

@@ -90,9 +90,9 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
             with stage(timer, "sensor"):
                 frame = apply_sensor(frame, sensor, sensor_rng(task, j))
         with stage(timer, "patchify"):
-            p = patchify(frame, d.patches.size, d.patches.stride, d.patches.min_coverage)
-            if frame.shots is not None:  # N images per patch: held in the stored dtype until the shard is written
-                p.image = _stored(p.image, d.storage.image_dtype)
+            # cut in the stored dtypes: a shard's patches are held at 2 bytes a value until it is written
+            p = patchify(frame, d.patches.size, d.patches.stride, d.patches.min_coverage,
+                         d.storage.image_dtype, d.storage.normal_dtype)
         pats.append(p)
         fidx.append(np.full(len(p), j, np.int32))
         with stage(timer, "release memory"):
@@ -242,16 +242,6 @@ def _share_stages(timer: StageTimer | None, before: dict | None, n: int) -> dict
     for k, v in added.items():
         timer.current[k] -= v - v / n
     return {k: v / n for k, v in added.items()}
-
-
-def _stored(image: np.ndarray, dtype: str) -> np.ndarray:
-    """Rig patches cast to the storage dtype as soon as they are cut (what the writer would do at the end:
-    the same values), so a worker holds 2 bytes per value over a shard of N-image patches, not 4."""
-    with np.errstate(over="ignore"):
-        out = image.astype(dtype)
-    if dtype == "float16" and not np.isfinite(out).all():
-        raise ValueError("radiance exceeds float16 range; use image_dtype='float32'")
-    return out
 
 
 def rig_record(frame, store_frames: bool) -> dict:

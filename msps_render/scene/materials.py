@@ -57,7 +57,25 @@ def measured_pool(cat: Catalogue, measured: str = "auto", merl_dir: str | os.Pat
     dirs = merl_search_dirs(merl_dir)
     # one listing per folder, not a stat per entry and folder: this runs for every frame
     listed = list_files(dirs)
-    fits = set(nbrdf.builtin_names()) if measured in ("auto", "nbrdf") else set()
+    fits = frozenset(nbrdf.builtin_names()) if measured in ("auto", "nbrdf") else frozenset()
+    # The pool is a function of the catalogue, the source and the files listed: kept for the next frame
+    # while those are the same (building its ~64 specs took ~1.5 ms a frame).
+    key = (id(cat), measured, tuple(dirs), tuple(listed.items()), fits)
+    hit = _POOLS.get(key)
+    if hit is not None and hit[0] is cat:
+        return list(hit[1])
+    pool = _build_pool(cat, measured, dirs, listed, fits)
+    while len(_POOLS) >= 8:
+        _POOLS.pop(next(iter(_POOLS)))
+    _POOLS[key] = (cat, tuple(pool))
+    return pool
+
+
+_POOLS: dict[tuple, tuple] = {}  # measured_pool's key -> (catalogue, pool): a few entries per process
+
+
+def _build_pool(cat: Catalogue, measured: str, dirs: list[Path], listed: dict, fits: frozenset[str]
+                ) -> list[MaterialSpec]:
     pool = []
     for e in cat.by_source("merl"):
         real = find_merl(e.target, dirs, listed) if measured in ("auto", "merl") else None
