@@ -81,6 +81,22 @@ def test_auto_prefers_real_merl_file_of_same_name(cache, tmp_path):
     assert len(only_nbrdf) == 80 and all(m.name.startswith("nbrdf:") for m in only_nbrdf)
 
 
+def test_the_kept_pool_follows_the_files_in_the_folder(cache, tmp_path):
+    """`measured_pool` keeps its pool between frames while the files listed are the same: a MERL file
+    added (or removed) mid-run changes the next frame's pool, as when it was rebuilt every frame."""
+    d = tmp_path / "merl"
+    d.mkdir()
+    cat = library.load_catalogue()
+    before = materials.measured_pool(cat, "auto", merl_dir=d)
+    assert "nbrdf:white-paint" in {m.name for m in before}
+    assert materials.measured_pool(cat, "auto", merl_dir=d) == before  # kept: the same specs
+    merl.write_merl(d / "white-paint.binary", analytic.make_table("lambert", {"albedo": [0.5] * 3}))
+    added = {m.name for m in materials.measured_pool(cat, "auto", merl_dir=d)}
+    assert "merl:white-paint" in added and "nbrdf:white-paint" not in added
+    (d / "white-paint.binary").unlink()
+    assert materials.measured_pool(cat, "auto", merl_dir=d) == before
+
+
 def test_holdout_split_keeps_test_materials_out_of_training(cache):
     test = library.held_out()
     assert len(test) == 16 and test <= set(nbrdf.builtin_names())

@@ -46,3 +46,39 @@ def test_patchify_keeps_the_covered_windows_and_cuts_every_array_the_same_way():
         assert np.array_equal(p.mask[k], mask[y:y + 20, x:x + 20].astype(np.uint8))
         assert np.array_equal(p.shadow[k], frame.shadow[:, y:y + 20, x:x + 20].astype(np.uint8))
     assert p.image.dtype == np.float32 and p.mask.dtype == np.uint8 and p.shadow.shape == (9, 4, 20, 20)
+
+
+def _frame(H=40, W=64, seed=3):
+    mask = np.zeros((H, W), bool)
+    mask[:, :30] = True
+    rng = np.random.default_rng(seed)
+    return SimpleNamespace(mask=mask, image=(rng.random((H, W, 3)) * 4).astype(np.float32),
+                           normal=rng.normal(size=(H, W, 3)).astype(np.float32), shots=None, points=None, shadow=None)
+
+
+def test_patches_cut_in_the_stored_dtype_equal_the_float32_windows_cast():
+    """The pipeline cuts patches in the shard's dtypes from a frame cast once: the same bytes as the
+    float32 windows cast by the writer, as before (a cast is per value); a float64 frame goes by way of
+    float32, so no other rounding creeps in."""
+    frame = _frame()
+    ref = patchify(frame, 20, 10, 0.5)
+    got = patchify(frame, 20, 10, 0.5, "float16", "float16")
+    assert got.image.dtype == np.float16 and got.normal.dtype == np.float16
+    assert got.image.tobytes() == ref.image.astype(np.float16).tobytes()
+    assert got.normal.tobytes() == ref.normal.astype(np.float16).tobytes()
+    assert np.array_equal(got.mask, ref.mask) and np.array_equal(got.yx, ref.yx)
+    f64 = SimpleNamespace(**{**vars(frame), "image": frame.image.astype(np.float64) + 1e-9})
+    assert patchify(f64, 20, 10, 0.5, "float16").image.tobytes() == \
+        patchify(f64, 20, 10, 0.5).image.astype(np.float16).tobytes()
+
+
+def test_float16_overflow_is_refused_only_inside_a_kept_window():
+    frame = _frame()
+    frame.image[5, 5] = 1e6  # inside the kept windows at x = 0
+    with pytest.raises(ValueError, match="float16 range"):
+        patchify(frame, 20, 10, 0.5, "float16")
+    assert patchify(frame, 20, 10, 0.5, "float32").image.max() == np.float32(1e6)
+    frame = _frame()
+    frame.image[5, 60] = 1e6  # in the background, which no kept window reaches (x <= 39)
+    p = patchify(frame, 20, 10, 0.5, "float16")
+    assert np.isfinite(p.image).all() and len(p) == 9
