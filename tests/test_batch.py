@@ -387,3 +387,49 @@ def test_own_meshes_are_rebuilt_not_kept_when_their_frames_come_back(rgb_variant
     again = render_batch(groups[0], rgb_variant, threads=1, scenes=scenes)
     for a, b in zip(first, again):
         assert np.array_equal(a.image, b.image) and np.array_equal(a.albedo, b.albedo)
+
+
+def test_kernels_change_only_when_a_slot_kind_is_new(rgb_variant, paper_specs):
+    """Batches of new content reuse one render kernel once their shapes and every kind of BSDF they hold
+    have been seen: a kind's slots are made all at once (`BsdfSlots`, `capacity`), and smooth plastic,
+    whose IOR Mitsuba bakes into the kernel, gets a slot kind per IOR.  Here, after a batch of all four
+    kinds (diffuse, plastic at IOR 1.4 and 1.5, a rough conductor), three batches that each want more of
+    one kind than any batch before, with other shapes, rotations, lights and albedos: one kernel.  Slots
+    made one by one as batches want more (as before) compile a new kernel for each of them (checked)."""
+    import drjit as dr
+
+    from msps_render.render.batch import BatchScenes, _slot_kind, render_batch
+    from msps_render.scene.spec import MaterialSpec
+
+    def plastic(ior, a):
+        return MaterialSpec(name="plastic", kind="plastic", params={"diffuse_reflectance": (a, 0.5, 0.3),
+                                                                    "int_ior": ior})
+
+    assert _slot_kind(plastic(1.4, 0.2)) != _slot_kind(plastic(1.5, 0.2))
+    assert _slot_kind(plastic(1.4, 0.2)) == _slot_kind(plastic(1.4, 0.7))
+    cond = MaterialSpec(name="roughconductor", kind="roughconductor", params={"material": "Cu", "alpha": 0.2})
+    lamb = lambertian((0.3, 0.4, 0.5))
+    menus = [[(plastic(1.4, 0.2), lamb), (plastic(1.5, 0.6), cond), (lamb, cond),
+              (plastic(1.4, 0.8), plastic(1.5, 0.4))],
+             [(cond, cond)] * 4,  # each batch after the first wants more of one kind than any before it
+             [(plastic(1.5, 0.1 * b), plastic(1.5, 0.5)) for b in range(4)],
+             [(plastic(1.4, 0.1 * b), lambertian((0.1 * b, 0.2, 0.3))) for b in range(4)]]
+    small = CameraSpec(width=24, height=24)
+    batches = [[s.model_copy(update={"materials": tuple(m[k % 2] for k in range(len(s.materials))),
+                                     "camera": small, "integrator": s.integrator.model_copy(update={"spp": 1})})
+                for s, m in zip(paper_specs[4 * (i % 2):4 * (i % 2) + 4], menu)] for i, menu in enumerate(menus)]
+    scenes = BatchScenes()
+    for specs in batches[:2]:  # first the shapes: the scene then holds both sets, and is not rebuilt
+        render_batch([s.model_copy(update={"materials": (lambertian(),) * len(s.materials)}) for s in specs],
+                     rgb_variant, threads=1, scenes=scenes)
+    render_batch(batches[0], rgb_variant, threads=1, scenes=scenes)  # and every kind
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        hashes = []
+        for specs in batches[1:]:
+            dr.kernel_history()
+            render_batch(specs, rgb_variant, threads=1, scenes=scenes)
+            hashes.append(max(dr.kernel_history(), key=lambda k: k.get("operation_count") or 0)["hash"])
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert len(set(hashes)) == 1, hashes

@@ -38,12 +38,13 @@ import numpy as np
 
 from msps_render.frame import Frame
 from msps_render.render.ground_truth import _centre_hits, _finish_geometry, constant_appearance
-from msps_render.render.textures import ALBEDO, WEIGHT, subdivide_to_edge, vertex_attributes
+from msps_render.render.materials import baked_literals
 from msps_render.render.memory import frame_budget
 from msps_render.render.multilight import FrameTable, integrator_dict, read_emitter_images
 from msps_render.render.pool import POOLED_SHAPES, _rotation, lit_by_table
 from msps_render.render.render import _frame
 from msps_render.render.scene_dict import _bsdf, _sensor, camera_to_world, emitter_ids, mitsuba_mesh
+from msps_render.render.textures import ALBEDO, ROUGHNESS_PARAM, WEIGHT, subdivide_to_edge, vertex_attributes
 from msps_render.render.variant import activate, resolve_variant
 from msps_render.scene.families import crease_normals
 from msps_render.scene.geometry import TriMesh, vertex_normals
@@ -251,25 +252,35 @@ class BsdfSlots:
     of a varying mix of kinds, so a new batch compiled (or loaded from disk) a new kernel almost every
     time.  Here each slot has a kind; a batch's BSDF of kind k replaces the previous BSDF in a slot of
     kind k (the old one is freed just before the new one is made, which takes its place in drjit's
-    instance order), and slots only ever grow: once a worker has seen its mix, kernels repeat.
-    Slots a batch does not need keep their last BSDF alive (a few MB at most)."""
+    instance order).  A kind's slots are made all at once, as many as a batch could ever want of it
+    (`capacity`: frames x parts), the first time a batch wants that kind: had they grown one by one,
+    as batches happened to want more of a kind than any before, each new slot would bring a new kernel
+    (paper-train, new content: 15 new kernels in 24 batches after the first 8, against 1).  So kernels
+    change only when a kind is seen for the first time.  Slots a batch does not need keep their last
+    BSDF alive (a few MB at most)."""
 
     def __init__(self):
         self.slots: list[list] = []  # [kind, bsdf]
 
-    def fill(self, wanted: list) -> list:
-        """[(kind, make)] -> the BSDFs made, in that order."""
+    def fill(self, wanted: list, capacity: int = 0) -> list:
+        """[(kind, make)] -> the BSDFs made, in that order.  A kind with fewer slots than wanted grows to
+        max(`capacity`, wanted); the new slots hold more BSDFs of its first wanted material, to stand in."""
         free: dict[str, list[int]] = {}
         for i, (kind, _) in enumerate(self.slots):
             free.setdefault(kind, []).append(i)
+        makes: dict[str, list] = {}
+        for kind, make in wanted:
+            makes.setdefault(kind, []).append(make)
+        for kind, ms in makes.items():
+            have = free.setdefault(kind, [])
+            if len(have) < len(ms):
+                for _ in range(max(capacity, len(ms)) - len(have)):
+                    have.append(len(self.slots))
+                    self.slots.append([kind, ms[0]()])
         out = []
         for kind, make in wanted:
-            if free.get(kind):
-                i = free[kind].pop(0)
-                self.slots[i][1] = None  # freed first: the new BSDF takes its instance id
-            else:
-                i = len(self.slots)
-                self.slots.append([kind, None])
+            i = free[kind].pop(0)
+            self.slots[i][1] = None  # freed first: the new BSDF takes its instance id
             self.slots[i][1] = make()
             out.append(self.slots[i][1])
         return out
@@ -432,7 +443,8 @@ def _frame_table(mi, specs: list[SceneSpec], keys: list, bs: BatchScene, slots: 
         parts.append(p)
         used = np.flatnonzero(np.bincount(p, minlength=len(s.materials)))
         wanted += [(_slot_kind(s.materials[q]), b, q) for q in used.tolist()]
-    made = slots.fill([(kind, lambda b=b, q=q: _bsdf(mi, specs[b], q, timer)) for kind, b, q in sorted(wanted)])
+    made = slots.fill([(kind, lambda b=b, q=q: _bsdf(mi, specs[b], q, timer)) for kind, b, q in sorted(wanted)],
+                      capacity=B * P)
     keep.extend(made)
     # one scatter of all pointers as data (a scatter per BSDF bakes its pointer into a new kernel each time)
     dr.scatter(table, mi.BSDFPtr(made), mi.UInt32([b * P + q for _, b, q in sorted(wanted)]))
@@ -453,8 +465,13 @@ def _frame_table(mi, specs: list[SceneSpec], keys: list, bs: BatchScene, slots: 
 
 
 def _slot_kind(m) -> str:
-    """A BSDF slot's kind (`BsdfSlots`): the material kind, and whether a texture or blend reads attributes."""
-    return m.kind + ("+texture" if m.texture is not None else "") + ("+blend" if m.blend is not None else "")
+    """A BSDF slot's kind (`BsdfSlots`): the material kind, what of it reads mesh attributes (texture,
+    textured roughness, blend) and the values its plugin bakes in as literals (`render.materials.BAKED`,
+    e.g. smooth plastic's IOR): each is other code in the kernel, so a slot never changes it."""
+    rough = m.texture is not None and m.texture.roughness is not None and m.kind in ROUGHNESS_PARAM
+    baked = "".join(f"@{v!r}" for v in baked_literals(m))
+    return (m.kind + baked + ("+texture" if m.texture is not None else "") + ("+rough" if rough else "")
+            + ("+blend" if m.blend is not None else ""))
 
 
 def _truth(mi, scene, sensor, specs: list[SceneSpec], bs: BatchScene, cells: list,

@@ -50,6 +50,17 @@ def _principled(p: dict) -> dict:
             "specular": float(p.get("specular", 0.5))}
 
 
+# Parameters a Mitsuba plugin bakes into the render kernel as literals (not opaque): two BSDFs that differ
+# in one run different code (the batched launch keeps such BSDFs apart, `render.batch._slot_kind`).
+BAKED: dict[str, tuple[str, ...]] = {"plastic": ("int_ior",)}
+
+
+def baked_literals(m: MaterialSpec) -> tuple:
+    """The values of `m`'s parameters its plugin bakes into the kernel (`BAKED`), as `to_mitsuba` passes them."""
+    d = BSDFS[m.kind](dict(m.params)) if m.kind in BAKED else {}
+    return tuple(d[k] for k in BAKED.get(m.kind, ()))
+
+
 BSDFS: dict[str, Callable[[dict], dict]] = {
     "diffuse": _diffuse,
     "plastic": _plastic,
