@@ -252,38 +252,25 @@ class BsdfSlots:
     of a varying mix of kinds, so a new batch compiled (or loaded from disk) a new kernel almost every
     time.  Here each slot has a kind; a batch's BSDF of kind k replaces the previous BSDF in a slot of
     kind k (the old one is freed just before the new one is made, which takes its place in drjit's
-    instance order).  A plain kind's slots are made all at once, as many as a batch could ever want of it
-    (`capacity`: frames x parts), the first time a batch wants that kind: had they grown one by one, as
-    batches happened to want more of a kind than any before, each new slot would bring a new kernel
-    (paper-train, new content: 15 new kernels in 24 batches after the first 8, against 1).  Not the kinds
-    that read mesh attributes (textures, blends): drjit compiles each such BSDF as its own function (its
-    call through the hit shape bakes its own data offset), so 24 slots of each made train-colour's kernel
-    ~10 s of LLVM per compile; their slots are made as batches want them.  Slots a batch does not need
-    keep their last BSDF alive (a few MB at most)."""
+    instance order), and slots only ever grow: once a worker has seen its mix, kernels repeat.
+    Slots a batch does not need keep their last BSDF alive (a few MB at most)."""
 
     def __init__(self):
         self.slots: list[list] = []  # [kind, bsdf]
 
-    def fill(self, wanted: list, capacity: dict | None = None) -> list:
-        """[(kind, make)] -> the BSDFs made, in that order.  A kind with fewer slots than wanted grows to
-        max(`capacity[kind]`, wanted); the new slots hold more BSDFs of its first wanted material, to stand in."""
-        capacity = capacity or {}
+    def fill(self, wanted: list) -> list:
+        """[(kind, make)] -> the BSDFs made, in that order."""
         free: dict[str, list[int]] = {}
         for i, (kind, _) in enumerate(self.slots):
             free.setdefault(kind, []).append(i)
-        makes: dict[str, list] = {}
-        for kind, make in wanted:
-            makes.setdefault(kind, []).append(make)
-        for kind, ms in makes.items():
-            have = free.setdefault(kind, [])
-            if len(have) < len(ms):
-                for _ in range(max(capacity.get(kind, 0), len(ms)) - len(have)):
-                    have.append(len(self.slots))
-                    self.slots.append([kind, ms[0]()])
         out = []
         for kind, make in wanted:
-            i = free[kind].pop(0)
-            self.slots[i][1] = None  # freed first: the new BSDF takes its instance id
+            if free.get(kind):
+                i = free[kind].pop(0)
+                self.slots[i][1] = None  # freed first: the new BSDF takes its instance id
+            else:
+                i = len(self.slots)
+                self.slots.append([kind, None])
             self.slots[i][1] = make()
             out.append(self.slots[i][1])
         return out
@@ -446,8 +433,7 @@ def _frame_table(mi, specs: list[SceneSpec], keys: list, bs: BatchScene, slots: 
         parts.append(p)
         used = np.flatnonzero(np.bincount(p, minlength=len(s.materials)))
         wanted += [(_slot_kind(s.materials[q]), b, q) for q in used.tolist()]
-    made = slots.fill([(kind, lambda b=b, q=q: _bsdf(mi, specs[b], q, timer)) for kind, b, q in sorted(wanted)],
-                      capacity={kind: B * P for kind, b, q in wanted if not _reads_attributes(specs[b].materials[q])})
+    made = slots.fill([(kind, lambda b=b, q=q: _bsdf(mi, specs[b], q, timer)) for kind, b, q in sorted(wanted)])
     keep.extend(made)
     # one scatter of all pointers as data (a scatter per BSDF bakes its pointer into a new kernel each time)
     dr.scatter(table, mi.BSDFPtr(made), mi.UInt32([b * P + q for _, b, q in sorted(wanted)]))
@@ -465,11 +451,6 @@ def _frame_table(mi, specs: list[SceneSpec], keys: list, bs: BatchScene, slots: 
                     face_part=opaque(face_part.ravel(), mi.UInt32), face_stride=opaque(np.uint32(F), mi.UInt32),
                     part_stride=opaque(np.uint32(P), mi.UInt32), bsdfs=table, keep=keep)
     return ft, parts
-
-
-def _reads_attributes(m) -> bool:
-    """Whether material m's BSDF reads mesh attributes (a texture or a blend weight): `BsdfSlots`."""
-    return m.texture is not None or m.blend is not None
 
 
 def _slot_kind(m) -> str:
