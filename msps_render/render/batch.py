@@ -48,7 +48,7 @@ from msps_render.render.textures import ALBEDO, ROUGHNESS_PARAM, WEIGHT, subdivi
 from msps_render.render.variant import activate, resolve_variant
 from msps_render.scene.families import crease_normals
 from msps_render.scene.geometry import TriMesh, vertex_normals
-from msps_render.scene.shapes import canonical_mesh, rotated_vertices, split_faces
+from msps_render.scene.shapes import canonical_mesh, part_pieces, rotated_vertices, split_faces
 from msps_render.scene.spec import SceneSpec
 from msps_render.timing import StageTimer, stage
 
@@ -155,16 +155,10 @@ def own_mesh(spec: SceneSpec) -> BatchMesh:
     part = split_faces(rotated_vertices(spec.shape, v).astype(np.float32), np.asarray(f, np.uint32), spec.split)
     vs, fs, ns, ps, at = [], [], [], [], {}
     base = 0
-    for p in range(int(part.max()) + 1 if len(part) else 0):
-        faces = f[part == p]
-        if not len(faces):
-            continue
-        used = np.flatnonzero(np.bincount(faces.ravel(), minlength=len(v)))
-        remap = np.zeros(len(v), np.int64)
-        remap[used] = np.arange(len(used))
+    for p, used, faces in part_pieces(f, part, len(v)):
         vs.append(v[used])
         ns.append(np.asarray(n, np.float64)[used])
-        fs.append(remap[faces] + base)
+        fs.append(faces + base)
         ps.append(np.full(len(faces), p, np.uint32))
         for name, a in vertex_attributes(spec.materials[p], v[used], ns[-1], None if uv is None else uv[used]).items():
             at.setdefault(name, []).append(np.asarray(a, np.float32))

@@ -21,7 +21,7 @@ from msps_render.render.materials import to_mitsuba
 from msps_render.render.multilight import integrator_dict
 from msps_render.render.textures import subdivide_to_edge, vertex_attributes
 from msps_render.scene.envmap import envmap_pixels
-from msps_render.scene.shapes import build_mesh, face_parts
+from msps_render.scene.shapes import build_mesh, face_parts, part_pieces
 from msps_render.errors import InputError
 from msps_render.scene.spec import CameraSpec, SceneSpec
 from msps_render.timing import StageTimer, stage
@@ -103,31 +103,22 @@ def geometry_shapes(mi, spec: SceneSpec) -> dict:
 
 def _shapes(mi, spec: SceneSpec, timer: StageTimer | None = None) -> dict:
     """Mitsuba shapes (one per material part), built from memory."""
-    import drjit as dr
-
     if spec.shape.kind == "sphere":
         return {"part0": {"type": "sphere", "radius": spec.shape.radius, "bsdf": _bsdf(mi, spec, 0, timer)}}
     with stage(timer, "mesh"):  # the BSDFs inside are timed apart (nested stage)
         mesh = object_mesh(spec, timer)
         R = np.asarray(spec.shape.rotation, dtype=np.float64)  # world = object @ R.T
-        parts = face_parts(mesh, spec.split)
-        used_parts = [p for p in range(int(parts.max()) + 1) if (parts == p).any()]
+        pieces = list(part_pieces(mesh.faces, face_parts(mesh, spec.split), len(mesh.vertices)))
         # BSDFs are created in the order of their kind, not of their part: drjit numbers
         # instances in creation order and the kernel depends on that order, so [merl, diffuse]
         # and [diffuse, merl] would compile two kernels; sorted, they share one.
         bsdfs = {p: _bsdf(mi, spec, p, timer)
-                 for p in sorted(used_parts, key=lambda p: (spec.materials[p].kind, p))}
+                 for p in sorted((p for p, _, _ in pieces), key=lambda p: (spec.materials[p].kind, p))}
         out = {}
-        for p in used_parts:
-            faces = mesh.faces[parts == p]
-            seen = np.zeros(len(mesh.vertices), dtype=bool)  # = np.unique(faces), in O(n)
-            seen[faces] = True
-            used = np.flatnonzero(seen)
-            remap = np.zeros(len(mesh.vertices), dtype=np.uint32)
-            remap[used] = np.arange(len(used), dtype=np.uint32)
+        for p, used, faces in pieces:
             props = mi.Properties()
             props["bsdf"] = bsdfs[p]
-            m, params = mitsuba_mesh(mi, f"part{p}", mesh.vertices[used], remap[faces], mesh.normals[used], props)
+            m, params = mitsuba_mesh(mi, f"part{p}", mesh.vertices[used], faces, mesh.normals[used], props)
             with stage(timer, "texture"):
                 attrs = vertex_attributes(spec.materials[p], mesh.vertices[used] @ R, mesh.normals[used] @ R,
                                           None if mesh.uv is None else mesh.uv[used])

@@ -224,6 +224,22 @@ def face_parts(mesh: TriMesh, split: SplitSpec) -> np.ndarray:
     return split_faces(mesh.vertices, mesh.faces, split)
 
 
+def part_pieces(faces: np.ndarray, parts: np.ndarray, n_vertices: int):
+    """Each non-empty part p of a mesh as (p, used, local): the vertices its faces use (ascending) and its
+    faces renumbered into them.  One Mitsuba shape (or one block of a batch's own mesh) per part, each
+    with its own vertex copies: a part's material reads its own attribute values at them."""
+    for p in range(int(parts.max()) + 1 if len(parts) else 0):
+        f = faces[parts == p]
+        if not len(f):
+            continue
+        seen = np.zeros(n_vertices, dtype=bool)  # = np.unique(f), in O(n)
+        seen[f] = True
+        used = np.flatnonzero(seen)
+        remap = np.zeros(n_vertices, dtype=np.int64)
+        remap[used] = np.arange(len(used))
+        yield p, used, remap[f]
+
+
 def split_faces(v: np.ndarray, f: np.ndarray, split: SplitSpec) -> np.ndarray:
     """`face_parts` of the mesh (v, f): vertices in the frame the split is defined in (the world)."""
     F = len(f)
