@@ -69,9 +69,9 @@ class DatasetSection(StrictModel):
     frames_per_shard: int = Field(8, ge=1, le=100000, description="rendered frames per shard")
     batch_frames: int = Field(1, ge=1, le=64, description="frames of a shard rendered by one kernel launch "
                                                           "(at most frames_per_shard; beyond 3 lights at most "
-                                                          "128 // lights) where they can share it: RGB, "
-                                                          "directional lights, no environment, orthographic "
-                                                          "(render/batch.py); the pixels differ from one "
+                                                          "128 // lights) where they can share it: one-pass, "
+                                                          "no environment, directional or point lights, RGB or "
+                                                          "spectral (render/batch.py); the pixels differ from one "
                                                           "frame per launch in noise only (docs/benchmarks.md "
                                                           "\"Frames in batches\")")
     patches: PatchConfig = PatchConfig()

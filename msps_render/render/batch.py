@@ -3,7 +3,8 @@
 Why: a `paper-train` frame's render kernel is short (~25 ms on a CPU core, ~3 ms on a GPU) and each
 launch has a fixed cost, so one launch per frame leaves the device waiting on per-frame Python work.
 
-How (RGB, one-pass, directional lights, no environment, orthographic cameras; generated shapes):
+How (one-pass, no environment; all lights directional or all point lights; orthographic or perspective
+cameras; generated or mesh-file shapes; RGB or spectral):
 - one loaded scene holds every shape of the batch once, canonical (unrotated), each in its own cell
   of space (`placement`: a cell from the shape alone).  It stays loaded while its shapes suffice, so
   a fixed pool (paper-train's 9 blobs) builds its BVHs a few times per worker, then never again.
@@ -12,7 +13,13 @@ How (RGB, one-pass, directional lights, no environment, orthographic cameras; ge
 - frame b is seen by its own orthographic camera aimed at its shape's cell, turned by R_b^T as in the
   pooled scene (`render.pool`), standing `distance + b * STEP` from the cell's centre (an orthographic
   image does not depend on that distance): the B cameras form one `batch` sensor (a film B frames
-  wide), and a camera ray's slot is read back from that distance (`multilight.FrameTable`);
+  wide), and a camera ray's slot is read back from that distance (`multilight.FrameTable`).  A
+  perspective image does depend on it: there every frame has a cell of its own (a shape seen twice in
+  one batch is a copy, `slot_keys`) at its true distance, and the cell a camera ray hits names its slot;
+- point lights (near LEDs) are positions in the frame's object frame about its cell's centre, with
+  1/r^2 and an LED's cos^mu, as the unbatched integrator has them;
+- spectral frames (narrow-band rigs) share the camera's bands and each light's spectrum shape (the
+  batch key, `Bands`): one wavelength table per light, the frame's own irradiance a scale in the table;
 - the one-pass integrator's batch mode takes the slot's lights and part BSDFs from tables (the part
   of a hit face from the slot's own split), and rays after the camera's stop within `reach`, so a
   frame's paths never meet another cell;
@@ -41,9 +48,9 @@ from msps_render.render.ground_truth import _centre_hits, _finish_geometry, cons
 from msps_render.render.materials import baked_literals
 from msps_render.render.memory import frame_budget
 from msps_render.render.multilight import FrameTable, integrator_dict, read_emitter_images
-from msps_render.render.pool import POOLED_SHAPES, _rotation, lit_by_table
+from msps_render.render.pool import POOLED_SHAPES, _rotation
 from msps_render.render.render import _frame
-from msps_render.render.scene_dict import _bsdf, _sensor, camera_to_world, emitter_ids, mitsuba_mesh
+from msps_render.render.scene_dict import _bsdf, _sensor, camera_to_world, emitter_ids, mitsuba_mesh, one_pass
 from msps_render.render.textures import ALBEDO, ROUGHNESS_PARAM, WEIGHT, subdivide_to_edge, vertex_attributes
 from msps_render.render.variant import activate, resolve_variant
 from msps_render.scene.families import crease_normals
@@ -58,9 +65,29 @@ SHAPES_REMEMBERED = 256  # how many recent shapes' batch counts a worker keeps (
 
 
 def batch_key(spec: SceneSpec, variant: str) -> tuple:
-    """What the frames of one launch must share: the camera, the integrator, the number of lights."""
+    """What the frames of one launch must share: the camera, the integrator, the number of lights, their
+    kind and (LEDs) their anisotropy, which the integrator's code holds."""
     i = spec.integrator
-    return (variant, spec.camera, i.kind, i.max_depth, i.spp, i.sampler, len(spec.lights))
+    key = (variant, spec.camera, i.kind, i.max_depth, i.spp, i.sampler, len(spec.lights))
+    if light_kind(spec) == "point":
+        key += ("point", anisotropy(spec))
+    if spec.mode == "spectral":  # the camera's bands and each light's spectrum: the wavelength tables
+        r = spec.rig
+        key += ("spectral", spec.camera_response, None if r is None else (r.camera, r.filters),
+                tuple(l.spectrum or l.rgb for l in spec.lights))
+    return key
+
+
+def light_kind(spec: SceneSpec) -> str | None:
+    """"directional" or "point" when every light of the frame is of that kind, else None."""
+    kinds = {l.kind for l in spec.lights}
+    return kinds.pop() if len(kinds) == 1 else None
+
+
+def anisotropy(spec: SceneSpec) -> tuple[float, ...]:
+    """Per light, the LED exponent mu of a point light (cos^mu about its axis; 0: isotropic)."""
+    mus = tuple(spec.rig.anisotropy) if spec.rig is not None and spec.rig.anisotropy else ()
+    return tuple(float(m) for m in mus) + (0.0,) * (len(spec.lights) - len(mus))
 
 
 def shape_key(spec: SceneSpec) -> tuple:
@@ -68,16 +95,59 @@ def shape_key(spec: SceneSpec) -> tuple:
     return (s.kind, s.name, tuple(s.sh_coeffs), s.subdivisions, tuple(sorted(s.params.items())), float(s.radius))
 
 
-BATCHED_SHAPES = POOLED_SHAPES + ("procedural",)  # canonical meshes; procedural creases split unrotated
+BATCHED_SHAPES = POOLED_SHAPES + ("procedural", "mesh")  # canonical meshes; procedural creases split unrotated
+
+
+def lit_from_table(spec: SceneSpec, mi) -> bool:
+    """Can the batch integrator take this frame's lights from its table?  One-pass (a JIT variant), no
+    environment, all lights directional (`pool.lit_by_table`) or all point lights (near LEDs); RGB, or
+    spectral with spectral channels (a rig of weights on R, G, B is refused by the unbatched path)."""
+    spectral_ok = spec.mode == "spectral" and (spec.rig is None or spec.rig.is_spectral)
+    return ((spec.mode == "rgb" or spectral_ok) and one_pass(spec, mi) and spec.environment is None
+            and light_kind(spec) in ("directional", "point"))
+
+
+@dataclass
+class Bands:
+    """A spectral batch's camera and light spectra (`render.spectral`): the camera's (len(GRID), M) bands,
+    each light's spectrum shape (shared by the batch's frames: the batch key) and which lights the camera
+    sees.  Light k of a frame emits shape_k * its own scale (`spectral.light_shape`)."""
+
+    camera_id: object
+    S: np.ndarray
+    shapes: list
+    visible: list  # light indices whose shape the camera sees (the others' images are 0, as unbatched)
+
+    def scale(self, mi, spec: SceneSpec) -> list[float]:
+        from msps_render.render.spectral import light_shape
+
+        return [light_shape(mi, l, self.S)[1] for l in spec.lights]
+
+    def responses(self, mi, spec: SceneSpec) -> np.ndarray:
+        """(M, K): `spectral.light_responses` of the frame."""
+        from msps_render.spectral.spectra import WL_STEP
+
+        return np.stack([(sh * sc) @ self.S * WL_STEP for sh, sc in zip(self.shapes, self.scale(mi, spec))], 1)
+
+
+def bands_of(mi, spec: SceneSpec) -> Bands | None:
+    """The `Bands` of a spectral frame, None in RGB."""
+    if spec.mode != "spectral":
+        return None
+    from msps_render.render.spectral import camera_bands, light_shape
+
+    camera_id, S = camera_bands(spec)
+    shapes = [light_shape(mi, l, S)[0] for l in spec.lights]
+    return Bands(camera_id, S, shapes, [k for k, sh in enumerate(shapes) if (sh @ S).sum() > 0])
 
 
 def batchable(specs: list[SceneSpec], mi) -> bool:
-    """Can these frames share one launch?  RGB, one-pass, directional lights, no environment, generated
-    shapes (`BATCHED_SHAPES`), textures and blends allowed, seen by orthographic cameras (`layout` bounds
-    their rays), with one batch key."""
+    """Can these frames share one launch?  RGB, one-pass, all lights directional or all point lights, no
+    environment, generated or mesh-file shapes (`BATCHED_SHAPES`), textures and blends allowed, seen by
+    orthographic or perspective cameras (`layout` bounds their rays), with one batch key."""
     return (len(specs) > 1
-            and all(lit_by_table(s, mi) and s.shape.kind in BATCHED_SHAPES and s.camera.kind == "orthographic"
-                    for s in specs)
+            and all(lit_from_table(s, mi) and s.shape.kind in BATCHED_SHAPES
+                    and s.camera.kind in ("orthographic", "perspective") for s in specs)
             and len({batch_key(s, mi.variant()) for s in specs}) == 1)
 
 
@@ -97,8 +167,11 @@ def mesh_key(spec: SceneSpec, own: bool) -> tuple:
 
 def frames_per_launch(batch_frames: int, spec: SceneSpec) -> int:
     """How many frames a launch renders for `dataset.batch_frames` and frames like `spec`: the setting,
-    capped by the worker's memory budget for its light count (`render.memory.frame_budget`)."""
-    return max(1, min(int(batch_frames), frame_budget(len(spec.lights)).batch))
+    capped by the worker's memory budget for its light count (`render.memory.frame_budget`), counted
+    in three-channel images (a spectral rig's M channels per light: M / 3 lights' worth of film)."""
+    rig = spec.rig
+    m = len(rig.channel_names) if spec.mode == "spectral" and rig is not None and rig.is_spectral else 3
+    return max(1, min(int(batch_frames), frame_budget(-(-len(spec.lights) * max(m, 3) // 3)).batch))
 
 
 def launch_groups(n_frames: int, batch_frames: int, spec_of) -> Iterator[range]:
@@ -185,13 +258,39 @@ def layout(spec: SceneSpec, n_slots: int) -> tuple[float, float]:
     """(spacing of the cells, reach of every ray after the camera's).
     A later ray starts on the object (within `OBJECT_RADIUS` of its cell's centre) and any surface that
     can shadow it is within `2 * OBJECT_RADIUS`: `reach` is a little more.  A camera ray runs from its
-    camera (the farthest stands `distance + (B - 1) * STEP` from the centre, at most `extent * sqrt 2`
-    off the axis) to the far clip, `OBJECT_RADIUS` past the centre.  Cells are far enough apart that
-    neither comes within `OBJECT_RADIUS` of another cell's centre."""
+    camera to the far clip, `OBJECT_RADIUS` past the centre along the axis: orthographic, the farthest
+    camera stands `distance + (B - 1) * STEP` from the centre, at most `extent * sqrt 2` off the axis;
+    perspective, the camera stands `distance` away and a ray reaches `(distance + OBJECT_RADIUS) / cos`
+    of the half-diagonal field of view past it.  Cells are far enough apart that neither comes within
+    `OBJECT_RADIUS` of another cell's centre."""
     c = spec.camera
     reach = 2.0 * OBJECT_RADIUS + 0.5
-    camera_reach = float(np.hypot(c.distance + (n_slots - 1) * STEP, c.extent * np.sqrt(2.0)))
+    if c.kind == "perspective":
+        t = np.tan(np.radians(c.fov_deg) / 2.0) * np.hypot(1.0, max(c.width, c.height) / min(c.width, c.height))
+        camera_reach = c.distance + (c.distance + OBJECT_RADIUS) * float(np.hypot(1.0, t))
+    else:
+        camera_reach = float(np.hypot(c.distance + (n_slots - 1) * STEP, c.extent * np.sqrt(2.0)))
     return max(camera_reach, OBJECT_RADIUS + reach) + OBJECT_RADIUS + 1.0, reach
+
+
+def slot_keys(specs: list[SceneSpec], keys: list[tuple]) -> list[tuple]:
+    """The key of each frame's cell.  Orthographic frames of one shape share its cell (the camera's
+    distance names the slot); a perspective image depends on that distance, so there every frame has
+    a cell of its own and the cell names the slot: a shape's second frame of the batch is a copy."""
+    if specs[0].camera.kind != "perspective":
+        return keys
+    seen: dict[tuple, int] = {}
+    out = []
+    for k in keys:
+        n = seen.get(k, 0)
+        seen[k] = n + 1
+        out.append(k if n == 0 else ("copy", n, k))
+    return out
+
+
+def mesh_of(key: tuple) -> tuple:
+    """The mesh key a cell key stands for (`slot_keys`: a copy's is its shape's)."""
+    return key[2] if key[0] == "copy" else key
 
 
 LATTICE = 16  # a shape's home cell is one of LATTICE x LATTICE places in the (y, z) plane
@@ -233,6 +332,12 @@ class BatchScene:
     meshes: dict  # mesh_key -> BatchMesh
     spacing: float
     reach: float
+    bands: Bands | None = None  # spectral: the camera's bands and the lights' spectra (the batch key's)
+
+    @property
+    def lights(self) -> list[int] | None:
+        """The lights the launch traces (spectral: those the camera sees), None: all."""
+        return None if self.bands is None else self.bands.visible
 
     def centre(self, cell: tuple[int, int]) -> np.ndarray:
         return np.array([0.0, cell[0] * self.spacing, cell[1] * self.spacing])
@@ -302,11 +407,14 @@ class BatchScenes:
             self._ahead.pop(next(iter(self._ahead))).cancel()
 
     def _mesh(self, spec: SceneSpec, key: tuple, own: bool) -> BatchMesh | None:
-        """The shape's batch mesh when this scene does not hold it yet (the one `prepare` started, else
-        built now); None when it does."""
-        ahead = self._ahead.pop(key, None)
+        """The batch mesh of a cell key when this scene does not hold it yet (a copy's shape's, the one
+        `prepare` started, else built now); None when it does."""
+        base = mesh_of(key)
+        ahead = self._ahead.pop(base, None)
         if key in self._meshes:
             return None
+        if base in self._meshes:
+            return self._meshes[base]
         if ahead is not None:
             return ahead.result()
         return own_mesh(spec) if own else shared_mesh(spec)
@@ -315,7 +423,7 @@ class BatchScenes:
         """(the scene, each frame's cell, each frame's `mesh_key`)."""
         key = (batch_key(specs[0], mi.variant()), len(specs))
         own = needs_own_meshes(specs)
-        keys = [mesh_key(s, own) for s in specs]
+        keys = slot_keys(specs, [mesh_key(s, own) for s in specs])
         cells = placement(specs, keys)
         wanted = dict(zip(cells, keys))
         have = self._scenes.get(key)
@@ -338,7 +446,7 @@ class BatchScenes:
         # earlier shapes stay only if shapes repeat (a fixed pool); new shapes every frame would only
         # make every build longer
         kept = {c: k for c, k in (have.cells.items() if have is not None else ())
-                if c not in wanted and self._batches_of.get(k, 0) > 1 and k[0] != "own"}
+                if c not in wanted and self._batches_of.get(k, 0) > 1 and mesh_of(k)[0] != "own"}
         if len(set(kept.values()) | set(wanted.values())) > MAX_SHAPES:
             kept = {}
         live = set(kept.values()) | set(wanted.values())
@@ -372,15 +480,25 @@ def _build(mi, spec: SceneSpec, cells: dict, meshes: dict, n_slots: int) -> Batc
         params.update()
         d[name] = m
     integ = spec.integrator
-    d["integrator"] = integrator_dict(integ.kind, integ.max_depth, emitter_ids(spec), hide_emitters=True)
+    bands = bands_of(mi, spec)
+    lights = list(range(len(spec.lights))) if bands is None else bands.visible
+    mus = anisotropy(spec)
+    d["integrator"] = integrator_dict(integ.kind, integ.max_depth, [emitter_ids(spec)[k] for k in lights],
+                                      hide_emitters=True, anisotropy=[mus[k] for k in lights] if any(mus) else (),
+                                      channels=3 if bands is None else bands.S.shape[1])
     scene = mi.load_dict(d)
+    if bands is not None and lights:  # light k emits a flat unit spectrum, its shape folded into its bands
+        from msps_render.spectral.spectra import GRID
+
+        scene.integrator().set_bands(GRID, {emitter_ids(spec)[k]: bands.S * bands.shapes[k][:, None] for k in lights})
     used = set(cells.values())
-    return BatchScene(scene, scene.integrator(), dict(cells), {k: meshes[k].built() for k in used}, spacing, reach)
+    return BatchScene(scene, scene.integrator(), dict(cells), {k: meshes[k].built() for k in used}, spacing, reach,
+                      bands)
 
 
 def _batch_sensor(mi, specs: list[SceneSpec], bs: BatchScene, cells: list):
-    """One `batch` sensor: slot b's orthographic camera aimed at its shape's cell, turned by R_b^T,
-    standing `distance + b * STEP` from the centre."""
+    """One `batch` sensor: slot b's camera aimed at its cell, turned by R_b^T, standing `distance + b * STEP`
+    from the centre (orthographic), or `distance` (perspective: its own cell names the slot)."""
     T = mi.ScalarTransform4f
     first = _sensor(mi, specs[0])
     c = specs[0].camera
@@ -390,7 +508,7 @@ def _batch_sensor(mi, specs: list[SceneSpec], bs: BatchScene, cells: list):
         sub = _sensor(mi, s)
         sub.pop("sampler")
         R = np.asarray(s.shape.rotation, dtype=np.float64)
-        cam = c.model_copy(update={"distance": c.distance + b * STEP})
+        cam = c if c.kind == "perspective" else c.model_copy(update={"distance": c.distance + b * STEP})
         sub["to_world"] = (T().translate(bs.centre(cells[b]).tolist()) @ _rotation(mi, R.T)
                            @ camera_to_world(mi, cam))
         sub["far_clip"] = cam.distance + OBJECT_RADIUS
@@ -398,12 +516,15 @@ def _batch_sensor(mi, specs: list[SceneSpec], bs: BatchScene, cells: list):
     return mi.load_dict(d)
 
 
-def _frame_table(mi, specs: list[SceneSpec], keys: list, bs: BatchScene, slots: "BsdfSlots",
+def _frame_table(mi, specs: list[SceneSpec], keys: list, cells: list, bs: BatchScene, slots: "BsdfSlots",
                  timer: StageTimer | None):
-    """The lights, face parts and part BSDFs of every slot (and each frame's face parts, for its truth)."""
+    """The lights, face parts and part BSDFs of every slot (and each frame's face parts, for its truth).
+    A light is its direction (directional) or its position (point), turned into the object frame."""
     import drjit as dr
 
-    B, K = len(specs), len(specs[0].lights)
+    B = len(specs)
+    lights = bs.lights if bs.lights is not None else list(range(len(specs[0].lights)))
+    K = len(lights)
     F = max(m.n_faces for m in bs.meshes.values())
     P = max(len(s.materials) for s in specs)
     dirs = np.zeros((B, K, 3), np.float32)
@@ -411,11 +532,16 @@ def _frame_table(mi, specs: list[SceneSpec], keys: list, bs: BatchScene, slots: 
     face_part = np.zeros((B, F), np.uint32)
     parts, keep, wanted = [], [], []
     table = dr.zeros(mi.BSDFPtr, B * P)
+    point = light_kind(specs[0]) == "point"
     for b, s in enumerate(specs):
         R = np.asarray(s.shape.rotation, dtype=np.float64)
-        for k, l in enumerate(s.lights):
-            dirs[b, k] = R.T @ np.asarray(l.direction, dtype=np.float64)
-            rgb[b, k] = l.rgb
+        scale = bs.bands.scale(mi, s) if bs.bands is not None else None
+        for k, n in enumerate(lights):
+            l = s.lights[n]
+            # a point light stands at direction * distance (`scene_dict`)
+            at = np.asarray(l.direction, dtype=np.float64) * (l.distance if point else 1.0)
+            dirs[b, k] = R.T @ at
+            rgb[b, k] = l.rgb if scale is None else (scale[n],) * 3  # spectral: its spectrum's scale
         bm = bs.meshes[keys[b]]
         if bm.parts is not None:  # an own mesh: split when it was made
             p = bm.parts
@@ -438,12 +564,19 @@ def _frame_table(mi, specs: list[SceneSpec], keys: list, bs: BatchScene, slots: 
         return x
 
     dr.make_opaque(table)
+    cell_slot = None
+    if specs[0].camera.kind == "perspective":  # every frame in a cell of its own (`slot_keys`)
+        where = np.zeros(LATTICE * LATTICE, np.uint32)
+        for b, (i, j) in enumerate(cells):
+            where[(i + LATTICE // 2) * LATTICE + j + LATTICE // 2] = b
+        cell_slot = opaque(where, mi.UInt32)
     ft = FrameTable(n_frames=B, n_lights=K, spacing=bs.spacing, distance=float(specs[0].camera.distance),
                     step=STEP, reach=bs.reach,
                     light_d=tuple(opaque(dirs[..., i].ravel(), mi.Float) for i in range(3)),
                     light_e=tuple(opaque(rgb[..., i].ravel(), mi.Float) for i in range(3)),
                     face_part=opaque(face_part.ravel(), mi.UInt32), face_stride=opaque(np.uint32(F), mi.UInt32),
-                    part_stride=opaque(np.uint32(P), mi.UInt32), bsdfs=table, keep=keep)
+                    part_stride=opaque(np.uint32(P), mi.UInt32), bsdfs=table, keep=keep,
+                    point=point, cell_slot=cell_slot, lattice=LATTICE)
     return ft, parts
 
 
@@ -507,18 +640,34 @@ def render_batch(specs: list[SceneSpec], variant: str | None = None, threads: in
         raise ValueError("these frames cannot share a launch (render.batch.batchable)")
     scenes = scenes if scenes is not None else BatchScenes()
     bs, cells, keys = scenes.get(specs, mi, timer)
-    table, parts = _frame_table(mi, specs, keys, bs, scenes.bsdfs, timer)
+    table, parts = _frame_table(mi, specs, keys, cells, bs, scenes.bsdfs, timer)
     with stage(timer, "scene update"):
         sensor = _batch_sensor(mi, specs, bs, cells)
+    ids = emitter_ids(specs[0]) if bs.lights is None else [emitter_ids(specs[0])[k] for k in bs.lights]
     try:
         bs.integrator.set_batch(table)
         with stage(timer, "ground truth"):
             truths = _truth(mi, bs.scene, sensor, specs, bs, cells, parts)
         with stage(timer, "render"):
-            image = mi.render(bs.scene, sensor=sensor, spp=specs[0].integrator.spp, seed=specs[0].integrator.seed)
-            images = read_emitter_images(image, bs.integrator.aov_names(), emitter_ids(specs[0]))
+            if ids:
+                image = mi.render(bs.scene, sensor=sensor, spp=specs[0].integrator.spp, seed=specs[0].integrator.seed)
+                images = read_emitter_images(image, bs.integrator.aov_names(), ids)
+            else:  # no light the camera sees (spectral): geometry only, as unbatched
+                c = specs[0].camera
+                images = np.zeros((0, c.height, c.width * len(specs), bs.bands.S.shape[1]), np.float32)
     finally:
         bs.integrator.set_batch(None)  # the batch's BSDFs die with it
     W = specs[0].camera.width
-    return [_frame(mi, s, variant, truths[b], images[:, :, b * W:(b + 1) * W], per_light)
-            for b, s in enumerate(specs)]
+    if bs.bands is None:
+        return [_frame(mi, s, variant, truths[b], images[:, :, b * W:(b + 1) * W], per_light)
+                for b, s in enumerate(specs)]
+    from msps_render.render.spectral import spectral_frame
+
+    out = []
+    for b, s in enumerate(specs):
+        mine = images[:, :, b * W:(b + 1) * W]
+        zero = np.zeros(mine.shape[1:], np.float32)
+        per = [mine[bs.lights.index(k)] if k in bs.lights else zero for k in range(len(s.lights))]
+        out.append(spectral_frame(mi, s, variant, truths[b][:4], per, bs.bands.S, bs.bands.responses(mi, s),
+                                  bs.bands.camera_id, None, per_light, "emission x camera", "one-pass"))
+    return out

@@ -75,11 +75,13 @@ class PartTable:
 @dataclasses.dataclass
 class FrameTable:
     """Batched frames (`render.batch`): what each frame of one launch has of its own, as opaque device
-    arrays indexed by its slot b: K directional lights (direction toward the light in the object
-    frame, RGB irradiance), the material part of every face of its mesh, and each part's BSDF.
-    Frames of one shape share its mesh (one cell of space per shape); frame b's camera stands
-    `distance + b * step` from the cell's centre, so a camera ray's slot is read from how far its
-    origin is from the centre of the cell it hits, and carried along its path.  Rays after the
+    arrays indexed by its slot b: K lights, all directional (direction toward the light in the object
+    frame, RGB irradiance) or all point lights (position in the object frame about the cell's centre,
+    RGB intensity), the material part of every face of its mesh, and each part's BSDF.
+    Orthographic frames of one shape share its mesh (one cell of space per shape); frame b's camera
+    stands `distance + b * step` from the cell's centre, so a camera ray's slot is read from how far
+    its origin is from the centre of the cell it hits.  Perspective frames each have a cell of their
+    own, and `cell_slot` names its frame.  The slot is carried along the path.  Rays after the
     camera's reach at most `reach`, so a path never leaves its cell."""
 
     n_frames: int
@@ -96,6 +98,9 @@ class FrameTable:
     # slot b's part p has its BSDF at b * P + p
     bsdfs: object  # mi.BSDFPtr (B * P)
     keep: list  # the BSDF objects (alive as long as the table)
+    point: bool = False  # point lights: light_d holds positions, light_e intensities
+    cell_slot: object = None  # perspective: mi.UInt32 (lattice^2): the slot of the frame in cell (i, j)
+    lattice: int = 16  # cells (i, j), -lattice / 2 <= i, j < lattice / 2, at (i + lattice / 2) * lattice + ...
 
 
 @dataclasses.dataclass
@@ -109,7 +114,7 @@ class BatchPathState:
     valid_ray: object
     eta: object
     slot: object
-    beta: object
+    beta: list  # one throughput per group (RGB: one; spectral: one per light)
     acc: list
 
 
@@ -464,27 +469,47 @@ def _plugin_class(variant: str):
             return main, valid_ray, aovs
 
         def _sample_batch(self, scene, sampler, ray, active):
-            """`sample` for batched frames (RGB, directional lights from the frame table, no
+            """`sample` for batched frames (directional or point lights from the frame table, no
             environment): the same estimator -- every light at every vertex, BSDF-sampled bounces,
             Russian roulette -- with the frame's slot read at the camera ray's hit (`FrameTable`)
-            and every ray after the camera's limited to the table's reach."""
+            and every ray after the camera's limited to the table's reach.  Spectral variants: as
+            `sample`, one group per light (its own wavelengths from its bands and its own throughput;
+            the first light's BSDF sample steers the path), the table's light value a scale on the
+            light's flat unit emission."""
             tb = self.batch
             K, B, P = tb.n_lights, tb.n_frames, tb.part_stride
             continues = self.max_depth > 2
             ctx = mi.BSDFContext()
+            spectral = bool(mi.is_spectral)
+            G = K if spectral else 1  # throughput groups
+            wavelengths, lane_w = [None], None
+            if spectral:
+                if set(self.tables) != set(self.emitter_ids):
+                    raise RuntimeError(f"{PLUGIN_NAME}: spectral variants need set_bands() before rendering")
+                drawn = [_sample_wavelengths(mi, self.tables[self.emitter_ids[k]], sampler.next_1d(active))
+                         for k in range(K)]
+                wavelengths, lane_w = [w for w, _ in drawn], [lw for _, lw in drawn]
 
             def body(st: BatchPathState) -> tuple[BatchPathState]:
                 sampler, ray, depth, active = st.sampler, st.ray, st.depth, st.active
                 si = scene.ray_intersect(ray, mi.RayFlags.All, depth == 0, active)
                 hit = active & si.is_valid()
                 # the camera ray: its slot from how far its origin is from the centre of the cell it hit
-                centre = mi.Point3f(0.0, dr.round(si.p.y / tb.spacing) * tb.spacing,
-                                    dr.round(si.p.z / tb.spacing) * tb.spacing)
-                b = dr.round((dr.dot(centre - ray.o, ray.d) - tb.distance) / tb.step)
-                slot = dr.select(depth == 0, mi.UInt32(dr.clip(b, 0.0, float(B - 1))), st.slot)
+                # (orthographic), or from that cell (perspective)
+                ci, cj = dr.round(si.p.y / tb.spacing), dr.round(si.p.z / tb.spacing)
+                centre = mi.Point3f(0.0, ci * tb.spacing, cj * tb.spacing)
+                if tb.cell_slot is None:
+                    b = dr.round((dr.dot(centre - ray.o, ray.d) - tb.distance) / tb.step)
+                    first = mi.UInt32(dr.clip(b, 0.0, float(B - 1)))
+                else:
+                    half, n_cells = tb.lattice // 2, tb.lattice * tb.lattice
+                    cell = mi.UInt32(dr.clip((ci + half) * tb.lattice + cj + half, 0.0, float(n_cells - 1)))
+                    first = dr.gather(mi.UInt32, tb.cell_slot, cell, hit & (depth == 0))
+                slot = dr.select(depth == 0, first, st.slot)
                 part = dr.gather(mi.UInt32, tb.face_part, slot * tb.face_stride + si.prim_index, hit)
                 bsdf = dr.gather(mi.BSDFPtr, tb.bsdfs, slot * P + part, hit)
-                acc, beta = list(st.acc), st.beta
+                acc, beta = list(st.acc), list(st.beta)
+                si_g = [_with_wavelengths(mi, si, wavelengths[g]) for g in range(G)]
                 active_next = active & (depth + 1 < self.max_depth) & si.is_valid()
                 flags = bsdf.flags()
                 active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth)
@@ -493,14 +518,28 @@ def _plugin_class(variant: str):
                 for k in range(K):
                     i = slot * K + k
                     d = mi.Vector3f(*(dr.gather(mi.Float, c, i, active_em) for c in tb.light_d))
-                    e = mi.Color3f(*(dr.gather(mi.Float, c, i, active_em) for c in tb.light_e))
+                    if spectral:  # the scale of the light's flat unit emission
+                        e = dr.gather(mi.Float, tb.light_e[0], i, active_em)
+                    else:
+                        e = mi.Color3f(*(dr.gather(mi.Float, c, i, active_em) for c in tb.light_e))
+                    if tb.point:  # as Mitsuba's `point`: intensity / r^2 toward the light's position
+                        at = d  # about the cell's centre, object frame
+                        to = centre + at - si.p
+                        r2 = dr.squared_norm(to)
+                        d, e = to * dr.rsqrt(r2), e * dr.rcp(r2)
+                        shadow = si.spawn_ray_to(centre + at)
+                        if self.anisotropy[k]:  # an LED: x cos^mu of the angle off its axis (`sample`)
+                            e = e * dr.power(dr.maximum(dr.dot(d, dr.normalize(at)), 0.0), self.anisotropy[k])
+                        shadow.maxt = dr.minimum(shadow.maxt, tb.reach)
+                    else:
+                        shadow = si.spawn_ray(d)
+                        shadow.maxt = tb.reach
                     wo = si.to_local(d)
                     ok = active_em & ((mi.Frame3f.cos_theta(wo) > 0) | transmits)
-                    shadow = si.spawn_ray(d)
-                    shadow.maxt = tb.reach
                     ok &= ~scene.ray_test(shadow, ok)
-                    val = bsdf.eval(ctx, si, wo, ok)
-                    acc[k] = dr.select(ok, acc[k] + beta * val * e, acc[k])
+                    g = k if spectral else 0
+                    val = bsdf.eval(ctx, si_g[g], wo, ok)
+                    acc[k] = dr.select(ok, acc[k] + beta[g] * val * e, acc[k])
                 st.valid_ray = st.valid_ray | hit
                 st.slot = slot
                 st.acc = acc
@@ -508,28 +547,37 @@ def _plugin_class(variant: str):
                     st.active = active & False
                     return (st,)
                 u1, u2 = sampler.next_1d(), sampler.next_2d()
-                bs, w = bsdf.sample(ctx, si, u1, u2, active_next)
-                beta = beta * w
+                bs, w = bsdf.sample(ctx, si_g[0], u1, u2, active_next)
+                beta[0] = beta[0] * w
+                for g in range(1, G):  # the other groups reuse its random numbers (`sample`)
+                    beta[g] = beta[g] * bsdf.sample(ctx, si_g[g], u1, u2, active_next)[1]
                 nxt = si.spawn_ray(si.to_world(bs.wo))
                 nxt.maxt = tb.reach
                 st.ray = nxt
                 st.eta = eta = st.eta * bs.eta
                 depth = dr.select(si.is_valid(), depth + 1, depth)
-                beta_max = dr.max(mi.unpolarized_spectrum(beta))
+                beta_max = dr.max(mi.unpolarized_spectrum(beta[0]))
+                for g in range(1, G):
+                    beta_max = dr.maximum(beta_max, dr.max(mi.unpolarized_spectrum(beta[g])))
                 rr_prob = dr.minimum(beta_max * eta * eta, 0.95)
                 rr_active = depth >= self.rr_depth
                 rr_continue = sampler.next_1d() < rr_prob
-                st.beta = dr.select(rr_active, beta / rr_prob, beta)
+                st.beta = [dr.select(rr_active, b / rr_prob, b) for b in beta]
                 st.depth = depth
                 st.active = active_next & (~rr_active | rr_continue) & (beta_max != 0.0)
                 return (st,)
 
             start = BatchPathState(sampler=sampler, ray=mi.Ray3f(ray), depth=mi.UInt32(0), active=mi.Bool(active),
                                    valid_ray=mi.Bool(False), eta=mi.Float(1.0), slot=mi.UInt32(0),
-                                   beta=mi.Spectrum(1.0), acc=[mi.Spectrum(0.0) for _ in range(K)])
+                                   beta=[mi.Spectrum(1.0) for _ in range(G)], acc=[mi.Spectrum(0.0) for _ in range(K)])
             (end,) = dr.while_loop(state=(start,), cond=lambda st: st.active, body=body, labels=("path",),
                                    label=PLUGIN_NAME + "_batch")
             aovs, main = [], mi.Spectrum(0.0)
+            if spectral:  # camera channels are the AOVs (`sample`); the film's own channels stay 0
+                for k in range(K):
+                    a = mi.unpolarized_spectrum(end.acc[k])
+                    aovs.extend(dr.select(end.valid_ray, dr.sum(a * lane_w[k][i]), 0.0) for i in range(self.n_channels))
+                return main, end.valid_ray, aovs
             for k in range(K):
                 aovs.extend(dr.select(end.valid_ray, end.acc[k][c], 0.0) for c in range(3))
                 main = main + end.acc[k]

@@ -111,21 +111,41 @@ def env_spectral_factor(mi, spec: SceneSpec, camera_id) -> float:
     return float(c.sum() / max(resp.sum(), 1e-12))
 
 
+def light_shape(mi, light, S: np.ndarray) -> tuple[np.ndarray, float]:
+    """(shape, scale) of a light's emission spectrum on GRID, E = shape * scale: a spectrum id's own shape,
+    scaled so its camera response summed over channels is `sum(rgb)`; Mitsuba's upsampling of `rgb` (scale 1)
+    otherwise.  Frames in batches share the shape (its wavelength table) and keep their own scale."""
+    if light.spectrum is not None:
+        unit = light_spectrum(light.spectrum).values
+        r_unit = unit @ S * WL_STEP
+        return unit, sum(light.rgb) / max(r_unit.sum(), 1e-300)
+    return emitter_spectrum_for_rgb(mi, light.rgb), 1.0
+
+
 def light_responses(mi, spec: SceneSpec, camera_id) -> tuple[list[np.ndarray], np.ndarray]:
     """Per light: its emission spectrum on GRID (absolute) and its (M,) camera response (white, normal);
     `camera_id`: a camera id (M = 3) or the sensitivities themselves, (len(GRID), M)."""
     S = _sensitivities(camera_id)
     spectra, R = [], []
     for l in spec.lights:
-        if l.spectrum is not None:
-            unit = light_spectrum(l.spectrum).values
-            r_unit = unit @ S * WL_STEP
-            E = unit * (sum(l.rgb) / max(r_unit.sum(), 1e-300))
-        else:
-            E = emitter_spectrum_for_rgb(mi, l.rgb)
+        shape, scale = light_shape(mi, l, S)
+        E = shape * scale
         spectra.append(E)
         R.append(E @ S * WL_STEP)
     return spectra, (np.stack(R, axis=1) if R else np.zeros((S.shape[1], 0)))
+
+
+def camera_bands(spec: SceneSpec) -> tuple[object, np.ndarray]:
+    """(camera id, (len(GRID), M) sensitivities) of a spectral frame: its rig's M channels, or its camera's
+    r, g, b.  A rig of weights on R, G, B is refused: it belongs to mode 'rgb'."""
+    rig = spec.rig
+    if rig is not None and not rig.is_spectral:
+        raise InputError("scene.rig", "this rig's channels are weights on R, G, B (mode 'rgb'); a spectral scene's "
+                                      "rig needs spectral channels (sample it with scene.mode = 'spectral')")
+    if rig is not None:
+        return rig.camera, rig_sensitivities(rig)
+    camera_id = spec.camera_response or DEFAULT_CAMERA
+    return camera_id, camera_sensitivities(camera_id).values
 
 
 def _render(mi, scene, spec: SceneSpec, channels: int = 3) -> np.ndarray:
@@ -200,18 +220,10 @@ def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = F
     emit their spectra, film bands = camera sensitivities; always one render per emitter): same
     expectation, much noisier for narrow LEDs; kept for validation (tests compare both).
     A spectral rig (`spec.rig.is_spectral`) renders its M channels and composes its shots."""
-    rig = spec.rig
-    if rig is not None and not rig.is_spectral:
-        raise InputError("scene.rig", "this rig's channels are weights on R, G, B (mode 'rgb'); a spectral scene's "
-                                      "rig needs spectral channels (sample it with scene.mode = 'spectral')")
-    if rig is not None:
-        camera_id, S = rig.camera, rig_sensitivities(rig)
-        if not emission_in_film and S.shape[1] != 3:
-            raise ValueError(f"the literal spectral set-up reads three channels; this rig has {S.shape[1]} "
-                             f"(render it with emission_in_film=True)")
-    else:
-        camera_id = spec.camera_response or DEFAULT_CAMERA
-        S = camera_sensitivities(camera_id).values
+    camera_id, S = camera_bands(spec)
+    if spec.rig is not None and not emission_in_film and S.shape[1] != 3:
+        raise ValueError(f"the literal spectral set-up reads three channels; this rig has {S.shape[1]} "
+                         f"(render it with emission_in_film=True)")
     spectra, R = light_responses(mi, spec, S)
     env_factor = env_spectral_factor(mi, spec, S) if spec.environment is not None else None
     gt = None
@@ -248,8 +260,18 @@ def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = F
         scene = mi.load_dict(d)
         gt = ground_truth(mi, scene, spec)
         images = render_emitters_separately(mi, scene, ref)
-    normal, mask, depth, part = gt
+    return spectral_frame(mi, spec, variant, gt, images, S, R, camera_id, env_factor, per_light,
+                          "emission x camera" if emission_in_film else "camera", lights_mode)
 
+
+def spectral_frame(mi, spec: SceneSpec, variant: str, gt: tuple, images: list, S: np.ndarray, R: np.ndarray,
+                   camera_id, env_factor: float | None, per_light: bool, sampling: str, lights_mode: str) -> Frame:
+    """The Frame of a spectral render: per-emitter M-channel images (lights, then the environment) summed,
+    the rig's shots composed, the effective crosstalk and the light responses `R` in its meta.  Shared by
+    one frame at a time and frames in batches (`render.batch`)."""
+    rig = spec.rig
+    normal, mask, depth, part = gt
+    images = list(images)
     env_img = images.pop() if spec.environment is not None else None
     per = np.stack(images) if images else np.zeros((0,) + normal.shape[:2] + (S.shape[1],), np.float32)
     image = per.sum(axis=0) + (env_img if env_img is not None else 0.0)
@@ -272,7 +294,7 @@ def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = F
     meta = {"mitsuba_version": mi.__version__, "camera_response": camera_id,
             "crosstalk_effective": M.tolist(), "light_response": R.tolist(),
             "light_spectra": [l.spectrum for l in spec.lights], "env_spectral_factor": env_factor,
-            "wavelength_sampling": "emission x camera" if emission_in_film else "camera", "lights": lights_mode,
+            "wavelength_sampling": sampling, "lights": lights_mode,
             "wavelength_range_nm": [float(GRID[0]), float(GRID[-1])]}
     if rig is not None:
         meta.update(channel_names=list(rig.channel_names), filters_nm=[list(f) for f in rig.filters],
