@@ -210,7 +210,8 @@ def test_batch_frames_shards(tmp_path):
 
 @pytest.mark.parametrize("preset, extra", [
     ("paper-train", []),
-    ("train-colour", ["scene.camera.width=64", "scene.camera.height=64", "scene.integrator.spp=4"])])  # textures
+    ("train-colour", ["scene.camera.width=64", "scene.camera.height=64", "scene.integrator.spp=4"]),  # textures
+    ("spectral-train", ["scene.camera.width=64", "scene.camera.height=64", "scene.integrator.spp=4"])])  # spectral
 def test_an_export_re_renders_a_batched_frame_to_its_stored_pixels(tmp_path, preset, extra):
     """`msps export --rerender` of a dataset rendered 4 frames per launch re-renders each frame's batch, so
     its per-light images sum to the stored frame (as for unbatched datasets: <= 1e-5 of the brightest

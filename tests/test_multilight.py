@@ -382,3 +382,35 @@ def test_lights_field_default_validation_and_old_specs():
     old = spec.model_dump(mode="json")
     del old["integrator"]["lights"]
     assert SceneSpec.from_json(json.dumps(old)).integrator.lights == "per-light"
+
+
+def test_a_sample_that_is_not_finite_adds_nothing(rgb_variant, spectral_variant):
+    """A sample whose estimate failed numerically adds 0 to its pixel, so one such sample cannot turn a
+    pixel into NaN or inf and fail its shard (float16 storage refuses it).
+    - One frame at a time: spectral-train's 4th frame at 64 x 64 had one NaN/inf pixel at one thread
+      (a smooth roughplastic, alpha 0.05), which failed the whole render; now finite everywhere.
+    - In batches: lights of irradiance 1e41 (finite in the spec, inf in the frame table's float32) give
+      inf estimates; they add 0, and the other frame of the launch (irradiance 10) is lit as usual.
+    Finite samples are untouched: the presets' shards are byte-identical (docs/benchmarks.md)."""
+    from msps_render.pipeline.config import load_config
+    from msps_render.pipeline.plan import frame_rngs, frame_seed, plan
+    from msps_render.render.batch import render_batch
+    from msps_render.scene.sample import sample_scene
+    from msps_render.scene.spec import CameraSpec, IntegratorSpec, ShapeSpec
+
+    cfg = load_config("spectral-train", ["dataset.n_shards=1", "scene.camera.width=64", "scene.camera.height=64"])
+    t = plan(cfg)[0]
+    spec4 = [sample_scene(cfg.scene, r, seed=frame_seed(t, j), frame_index=j) for j, r in enumerate(frame_rngs(t, 4))][3]
+    f = render_frame(spec4, spectral_variant, threads=1, per_light=True)
+    assert np.isfinite(f.per_light).all() and f.image[f.mask].mean() > 0.01
+
+    def spec(e):
+        return SceneSpec(shape=ShapeSpec(kind="blobby", name="ball", sh_coeffs=(), subdivisions=4, radius=0.9),
+                         materials=(lambertian((0.5,) * 3),), lights=three_lights(30.0, (0.0, 120.0, 240.0),
+                                                                                  irradiance=e),
+                         camera=CameraSpec(width=32, height=32), integrator=IntegratorSpec(kind="path", spp=4))
+
+    with np.errstate(over="ignore"):
+        inf, ok = render_batch([spec(1e41), spec(10.0)], rgb_variant, threads=1, per_light=True)
+    assert np.isfinite(inf.per_light).all() and inf.mask.mean() > 0.3 and inf.image[inf.mask].max() == 0.0
+    assert np.isfinite(ok.image).all() and ok.image[ok.mask].mean() > 0.1
