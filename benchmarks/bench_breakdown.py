@@ -100,12 +100,22 @@ def bare_costs(specs, variant: str, threads: int, clock=time.perf_counter) -> tu
     mi = activate(variant, threads)
     kernel, build = [], []
     for spec in specs:
-        d = build_scene_dict(spec, mi)
+        bands = None
+        if spec.mode == "spectral":  # the one-pass spectral scene, as `render.spectral` renders it
+            from msps_render.render.spectral import camera_bands, light_responses, one_pass_dict
+            from msps_render.spectral.spectra import GRID
+
+            S = camera_bands(spec)[1]
+            d, _, bands = one_pass_dict(mi, spec, S, *light_responses(mi, spec, S), None)
+        else:
+            d = build_scene_dict(spec, mi)
         dr.sync_thread()
         t = clock()
         scene = mi.load_dict(d)
         dr.sync_thread()
         build.append(clock() - t)
+        if bands is not None:
+            scene.integrator().set_bands(GRID, bands)
         dr.eval(mi.render(scene, spp=spec.integrator.spp, seed=spec.integrator.seed))  # compiles if new
         dr.sync_thread()
         t = clock()

@@ -414,3 +414,44 @@ def test_a_sample_that_is_not_finite_adds_nothing(rgb_variant, spectral_variant)
         inf, ok = render_batch([spec(1e41), spec(10.0)], rgb_variant, threads=1, per_light=True)
     assert np.isfinite(inf.per_light).all() and inf.mask.mean() > 0.3 and inf.image[inf.mask].max() == 0.0
     assert np.isfinite(ok.image).all() and ok.image[ok.mask].mean() > 0.1
+
+
+def test_a_band_table_compiles_one_kernel_wherever_numpy_put_it(spectral_variant, monkeypatch):
+    """drjit reads a numpy buffer in place and gathers a `Vector2f` from it as one packet only when the buffer
+    is 64-byte aligned, so the same band table compiled one of two kernels by the chance of numpy's
+    allocation (3 new kernels in 10 spectral launches, ~1 s of LLVM each).  `set_bands` copies its tables
+    into aligned memory: a table handed over 64-byte aligned and the same table 16 bytes off give one
+    kernel (without the copy: two, checked)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from msps_render.render import multilight
+    from msps_render.spectral.spectra import GRID
+
+    mi.set_variant(spectral_variant)
+    bands = np.exp(-0.5 * ((GRID[:, None] - np.array([500.0, 550.0, 600.0])) / 20.0) ** 2)
+    real = multilight.band_table
+
+    def placed(offset):
+        def table(grid, b):
+            t = real(grid, b)
+            for k, v in t.items():
+                buf = np.empty(v.size + 64, np.float32)
+                start = ((-buf.ctypes.data % 64) + offset) // 4
+                t[k] = buf[start:start + v.size].reshape(v.shape)
+                t[k][...] = v
+            return t
+        return table
+
+    integ = mi.load_dict(multilight.integrator_dict("path", 3, ["light0"]))
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    hashes = []
+    for offset in (0, 16, 0, 16):
+        monkeypatch.setattr(multilight, "band_table", placed(offset))
+        integ.set_bands(GRID, {"light0": bands})
+        dr.kernel_history()
+        w, lw = multilight._sample_wavelengths(mi, integ.tables["light0"], dr.arange(mi.Float, 256) / 256)
+        dr.eval(w, lw)
+        hashes.append({str(e["hash"]) for e in dr.kernel_history() if e.get("ir")} or {"(cached)"})
+    dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert len(set().union(*hashes) - {"(cached)"}) <= 1, hashes

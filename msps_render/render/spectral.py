@@ -182,12 +182,11 @@ def _render_light_in_film(mi, spec: SceneSpec, k: int, E: np.ndarray, S: np.ndar
     return scene, out
 
 
-def _render_one_pass(mi, spec: SceneSpec, S: np.ndarray, spectra: list[np.ndarray], R: np.ndarray,
-                     env_factor: float | None):
-    """Every emitter from ONE render (`msps_multilight`), with the emission folded into each
-    emitter's own bands as `_render_light_in_film` does: light k emits a flat unit spectrum and its
-    four wavelengths per path are drawn from its bands E_k·S_i, the environment's from S_i.
-    Returns (ground truth, images: lights in order, then the environment)."""
+def one_pass_dict(mi, spec: SceneSpec, S: np.ndarray, spectra: list[np.ndarray], R: np.ndarray,
+                  env_factor: float | None) -> tuple[dict, list[str], dict]:
+    """(scene dict, emitter ids, bands per emitter id) of a one-pass spectral render: lights emit a flat
+    unit spectrum, their emission folded into their bands; load the dict, then give the integrator the
+    bands (`set_bands(GRID, bands)`).  Only the lights the camera sees are traced."""
     visible = [k for k in range(len(spec.lights)) if R[:, k].sum() > 0]  # the camera sees light k
     ids = [light_key(k) for k in visible] + ([ENV_KEY] if spec.environment is not None else [])
     integ = spec.integrator
@@ -201,6 +200,17 @@ def _render_one_pass(mi, spec: SceneSpec, S: np.ndarray, spectra: list[np.ndarra
     bands = {light_key(k): S * spectra[k][:, None] for k in visible}
     if spec.environment is not None:
         bands[ENV_KEY] = S
+    return d, ids, bands
+
+
+def _render_one_pass(mi, spec: SceneSpec, S: np.ndarray, spectra: list[np.ndarray], R: np.ndarray,
+                     env_factor: float | None):
+    """Every emitter from ONE render (`msps_multilight`), with the emission folded into each
+    emitter's own bands as `_render_light_in_film` does: light k emits a flat unit spectrum and its
+    four wavelengths per path are drawn from its bands E_k·S_i, the environment's from S_i.
+    Returns (ground truth, images: lights in order, then the environment)."""
+    integ = spec.integrator
+    d, ids, bands = one_pass_dict(mi, spec, S, spectra, R, env_factor)
     scene = mi.load_dict(d)
     gt = ground_truth(mi, scene, spec)
     zero = np.zeros(gt[0].shape[:2] + (S.shape[1],), np.float32)
