@@ -143,11 +143,41 @@ def resolve_variant(mode: str = "rgb", requested: str | None = None) -> str:
     return slow
 
 
+def flush_denormals() -> bool:
+    """Flush denormal floats to zero on the calling thread (x86-64 MXCSR FTZ and DAZ), as drjit's worker
+    threads run (Embree asks it of every thread that traces rays); True when set.
+
+    Why: with one thread drjit runs a kernel on the calling thread, with more on its workers; a value
+    that underflows then differs, and a rare sample came out inf at one thread and finite at two
+    (spectral-train, docs/benchmarks.md "Every rig batches").  The same MXCSR on every thread makes a
+    render independent of its thread count.  Linux x86-64 (glibc's fenv_t: MXCSR at byte 28) only."""
+    import ctypes
+    import platform
+
+    if sys.platform != "linux" or platform.machine() not in ("x86_64", "AMD64"):
+        return False
+    try:
+        libm = ctypes.CDLL("libm.so.6")
+        env = (ctypes.c_uint8 * 32)()
+        if libm.fegetenv(env) != 0:
+            return False
+        mxcsr = int.from_bytes(bytes(env[28:32]), "little")
+        if mxcsr & 0x8040 != 0x8040:
+            env[28:32] = list((mxcsr | 0x8040).to_bytes(4, "little"))
+            if libm.fesetenv(env) != 0:
+                return False
+        return True
+    except OSError:
+        return False
+
+
 def activate(variant: str, threads: int | None = None):
-    """Set the Mitsuba variant (and thread count) for this process; returns the `mi` module."""
+    """Set the Mitsuba variant (and thread count) for this process, with denormals flushed on this thread
+    as on drjit's workers (`flush_denormals`); returns the `mi` module."""
     import drjit as dr
     import mitsuba as mi
 
+    flush_denormals()
     if mi.variant() != variant:
         mi.set_variant(variant)
     threads = threads or (int(os.environ["MSPS_THREADS"]) if os.environ.get("MSPS_THREADS") else None)
