@@ -33,7 +33,7 @@ from msps_render.render.memory import frame_budget, kernel_cache_misses, release
 from msps_render.render.pool import ScenePool
 from msps_render.render.sensor import apply_sensor
 from msps_render.render.shadows import render_shadows
-from msps_render.render.variant import activate, mitsuba_info
+from msps_render.render.variant import activate, flush_denormals, mitsuba_info
 from msps_render.scene.sample import sample_scene
 from msps_render.scene.spec import SceneSpec
 from msps_render.timing import StageTimer, stage
@@ -72,6 +72,7 @@ def render_shard(task: Task, ws: WorkerSettings, timer: StageTimer | None = None
     loaded scenes, kept across its shards (None: a pool for this shard alone); frames do not
     depend on it (render/pool.py).
     """
+    flush_denormals()  # a shard's numpy and kernels in one floating-point mode, wherever a run starts
     scenes = scenes if scenes is not None else ScenePool()
     cfg = DatasetConfig.model_validate_json(task.config_json)
     check_material_pool(task, ws, cfg)
