@@ -394,11 +394,12 @@ def test_own_meshes_are_rebuilt_not_kept_when_their_frames_come_back(rgb_variant
 
 def test_a_plastic_slot_keeps_its_ior(rgb_variant, paper_specs):
     """Mitsuba's smooth plastic bakes its IOR into the kernel as a literal (other IORs, other code), so
-    the IOR is part of a BSDF slot's kind (`render.batch._slot_kind`, `render.materials.BAKED`): a batch
+    the IOR is part of a BSDF slot's kind (`render.slots.slot_kind`, `render.materials.BAKED`): a batch
     whose plastics all have IOR 1.5 leaves the IOR 1.4 slots holding the BSDFs they held, and a slot
     never changes its code.  (What it saves, measured in docs/benchmarks.md "Kernels on new content":
     fewer new kernels per batch on content no run has seen.)"""
-    from msps_render.render.batch import BatchScenes, _slot_kind, render_batch
+    from msps_render.render.batch import BatchScenes, render_batch
+    from msps_render.render.slots import slot_kind as _slot_kind
     from msps_render.scene.spec import MaterialSpec
 
     def plastic(ior, a):

@@ -112,3 +112,44 @@ def test_pooled_frames_of_one_structure_compile_nothing_new(rgb_variant, paper_s
         log.close()
     assert counts["launches"] >= 4 * 2
     assert counts["compiled"] == 0 and counts["disk_loads"] == 0, counts
+
+
+def test_pooled_frames_of_a_new_mix_of_seen_kinds_compile_nothing_new(rgb_variant, paper_specs):
+    """Pooled frames take their BSDFs from the worker's slots (`render.slots`): once a worker has seen a
+    set of BSDF kinds, a frame that mixes them anew launches no kernel that is not in drjit's cache.
+    Here two materials of each of four kinds, first as [measured + smooth plastic] and [diffuse + rough
+    conductor], then as [measured + diffuse] and [smooth plastic + rough conductor] with other values.
+    Before the slots, each new mix compiled its own kernel (paper-train on an empty disk cache: 47 new
+    kernels per 100 frames after 32; with the slots 3, docs/benchmarks.md)."""
+    from msps_render.render.kernels import KernelLog
+    from msps_render.scene.materials import lambertian
+    from msps_render.scene.spec import MaterialSpec, SplitSpec
+
+    base = paper_specs[0]
+    kinds = {m.kind: m for s in paper_specs for m in s.materials}
+    merl, plastic, rough = kinds["merl"], kinds["plastic"], kinds["roughconductor"]
+
+    def mixed(a, b, rotation):
+        return base.model_copy(update={
+            "materials": (a, b), "split": SplitSpec(kind="planes", n_parts=2, normals=((0.0, 0.0, 1.0),),
+                                                    offsets=(0.0,)),
+            "shape": base.shape.model_copy(update={"rotation": rotation})})
+
+    def other(m: MaterialSpec) -> MaterialSpec:  # the same slot kind, other values
+        params = {k: (v * 0.9 if isinstance(v, float) and k not in ("int_ior", "ext_ior") else v)
+                  for k, v in m.params.items()}
+        return m.model_copy(update={"params": params})
+
+    pool = ScenePool()
+    r = [s.shape.rotation for s in paper_specs]
+    for a, b, rot in ((merl, plastic, r[1]), (lambertian((0.5, 0.4, 0.3)), rough, r[2])):
+        render_frame(mixed(a, b, rot), rgb_variant, threads=1, scenes=pool)
+    log = KernelLog()
+    try:
+        for a, b, rot in ((other(merl), lambertian((0.2, 0.6, 0.4)), r[3]), (other(plastic), other(rough), r[4])):
+            render_frame(mixed(a, b, rot), rgb_variant, threads=1, scenes=pool)
+        counts = log.snapshot()
+    finally:
+        log.close()
+    assert counts["launches"] >= 2 * 2
+    assert counts["compiled"] == 0 and counts["disk_loads"] == 0, counts

@@ -45,13 +45,13 @@ import numpy as np
 
 from msps_render.frame import Frame
 from msps_render.render.ground_truth import _centre_hits, _finish_geometry, constant_appearance
-from msps_render.render.materials import baked_literals
 from msps_render.render.memory import frame_budget
 from msps_render.render.multilight import FrameTable, integrator_dict, read_emitter_images
 from msps_render.render.pool import POOLED_SHAPES, _rotation
 from msps_render.render.render import _frame
+from msps_render.render.slots import BsdfSlots, slot_kind
 from msps_render.render.scene_dict import _bsdf, _sensor, camera_to_world, emitter_ids, mitsuba_mesh, one_pass
-from msps_render.render.textures import ALBEDO, ROUGHNESS_PARAM, WEIGHT, subdivide_to_edge, vertex_attributes
+from msps_render.render.textures import ALBEDO, WEIGHT, subdivide_to_edge, vertex_attributes
 from msps_render.render.variant import activate, resolve_variant
 from msps_render.scene.families import crease_normals
 from msps_render.scene.geometry import TriMesh, vertex_normals
@@ -343,38 +343,6 @@ class BatchScene:
         return np.array([0.0, cell[0] * self.spacing, cell[1] * self.spacing])
 
 
-class BsdfSlots:
-    """The batches' BSDFs in one fixed layout of drjit instances.
-
-    Why: a call through a BSDF pointer compiles into the kernel every BSDF instance alive in the process,
-    in drjit's instance order (one more unrelated BSDF alive: 12 new kernels).  A batch holds ~20 BSDFs
-    of a varying mix of kinds, so a new batch compiled (or loaded from disk) a new kernel almost every
-    time.  Here each slot has a kind; a batch's BSDF of kind k replaces the previous BSDF in a slot of
-    kind k (the old one is freed just before the new one is made, which takes its place in drjit's
-    instance order), and slots only ever grow: once a worker has seen its mix, kernels repeat.
-    Slots a batch does not need keep their last BSDF alive (a few MB at most)."""
-
-    def __init__(self):
-        self.slots: list[list] = []  # [kind, bsdf]
-
-    def fill(self, wanted: list) -> list:
-        """[(kind, make)] -> the BSDFs made, in that order."""
-        free: dict[str, list[int]] = {}
-        for i, (kind, _) in enumerate(self.slots):
-            free.setdefault(kind, []).append(i)
-        out = []
-        for kind, make in wanted:
-            if free.get(kind):
-                i = free[kind].pop(0)
-                self.slots[i][1] = None  # freed first: the new BSDF takes its instance id
-            else:
-                i = len(self.slots)
-                self.slots.append([kind, None])
-            self.slots[i][1] = make()
-            out.append(self.slots[i][1])
-        return out
-
-
 class BatchScenes:
     """The worker's batch scene, rebuilt only when a batch needs a shape at a cell it does not hold
     (keeping up to `MAX_SHAPES` earlier placements that do not clash), so a fixed shape pool
@@ -552,7 +520,7 @@ def _frame_table(mi, specs: list[SceneSpec], keys: list, cells: list, bs: BatchS
         face_part[b, :len(p)] = p
         parts.append(p)
         used = np.flatnonzero(np.bincount(p, minlength=len(s.materials)))
-        wanted += [(_slot_kind(s.materials[q]), b, q) for q in used.tolist()]
+        wanted += [(slot_kind(s.materials[q]), b, q) for q in used.tolist()]
     made = slots.fill([(kind, lambda b=b, q=q: _bsdf(mi, specs[b], q, timer)) for kind, b, q in sorted(wanted)])
     keep.extend(made)
     # one scatter of all pointers as data (a scatter per BSDF bakes its pointer into a new kernel each time)
@@ -578,16 +546,6 @@ def _frame_table(mi, specs: list[SceneSpec], keys: list, cells: list, bs: BatchS
                     part_stride=opaque(np.uint32(P), mi.UInt32), bsdfs=table, keep=keep,
                     point=point, cell_slot=cell_slot, lattice=LATTICE)
     return ft, parts
-
-
-def _slot_kind(m) -> str:
-    """A BSDF slot's kind (`BsdfSlots`): the material kind, what of it reads mesh attributes (texture,
-    textured roughness, blend) and the values its plugin bakes in as literals (`render.materials.BAKED`,
-    e.g. smooth plastic's IOR): each is other code in the kernel, so a slot never changes it."""
-    rough = m.texture is not None and m.texture.roughness is not None and m.kind in ROUGHNESS_PARAM
-    baked = "".join(f"@{v!r}" for v in baked_literals(m))
-    return (m.kind + baked + ("+texture" if m.texture is not None else "") + ("+rough" if rough else "")
-            + ("+blend" if m.blend is not None else ""))
 
 
 def _truth(mi, scene, sensor, specs: list[SceneSpec], bs: BatchScene, cells: list,

@@ -317,9 +317,9 @@ def _plugin_class(variant: str):
                 return
             bsdfs = list(bsdfs)
             table = dr.zeros(mi.BSDFPtr, max(len(bsdfs), 1))
-            for p, b in enumerate(bsdfs):
-                if b is not None:
-                    dr.scatter(table, mi.BSDFPtr(b), mi.UInt32(p))
+            live = [p for p, b in enumerate(bsdfs) if b is not None]
+            if live:  # one scatter of all pointers as data (`render.batch._frame_table`)
+                dr.scatter(table, mi.BSDFPtr([bsdfs[p] for p in live]), mi.UInt32(live))
             dr.make_opaque(table)
             self.parts = PartTable(bsdfs, table)
 

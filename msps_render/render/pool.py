@@ -10,7 +10,8 @@ pooled scene holds the shape's canonical (unrotated) mesh and:
 - the frame's rotation R turns the camera and the lights instead (by R^T): the same image of
   the same object, up to float rounding (rays are traced in the object's frame);
 - the material parts are a face attribute (`PART_ATTRIBUTE`), and the one-pass integrator takes
-  each part's BSDF from a table (`set_part_bsdfs`) instead of the shape's own;
+  each part's BSDF from a table (`set_part_bsdfs`) instead of the shape's own; the BSDFs are made in
+  the worker's slots (`render.slots`), so a new mix of kinds the worker has seen keeps the kernel;
 - the ground truth reads the part from that attribute and turns normals and depth back into the
   camera frame (`ground_truth.pooled_truth`).
 
@@ -33,6 +34,7 @@ from typing import Iterator
 import numpy as np
 
 from msps_render.render.multilight import PART_ATTRIBUTE, integrator_dict
+from msps_render.render.slots import BsdfSlots, slot_kind
 from msps_render.render.scene_dict import BOUND_KEY, _bound, _bsdf, _sensor, camera_to_world, emitter_ids, \
     light_key, one_pass
 from msps_render.scene.geometry import vertex_normals
@@ -88,6 +90,7 @@ class ScenePool:
         self.max_scenes = max(1, int(max_scenes))
         self._scenes: OrderedDict[tuple, PooledScene] = OrderedDict()
         self._blank = None  # one BSDF for every pooled mesh (never evaluated: the part table is)
+        self.bsdfs = BsdfSlots()  # the frames' part BSDFs (`render.slots`): kernels repeat across mixes
         self.batches = None  # the worker's `render.batch.BatchScenes` (frames in batches), made on first use
         self.built = 0
         self.reused = 0
@@ -110,7 +113,7 @@ class ScenePool:
         """The pooled scene set up for `spec` (built on first use); its BSDFs are released after."""
         pooled = self._get(spec, mi, timer)
         try:
-            _update(mi, pooled, spec, timer)
+            _update(mi, pooled, spec, timer, self.bsdfs)
             yield pooled
         finally:
             pooled.integrator.set_part_bsdfs(None)  # the frame's BSDFs die now, before the next frame's
@@ -175,19 +178,22 @@ def _toward(mi, d: np.ndarray):
                                           up=mi.ScalarVector3f(*(up / np.linalg.norm(up))))
 
 
-def _update(mi, pooled: PooledScene, spec: SceneSpec, timer: StageTimer | None) -> None:
+def _update(mi, pooled: PooledScene, spec: SceneSpec, timer: StageTimer | None, slots: BsdfSlots) -> None:
     """Set every per-frame value of `spec` on the pooled scene: the camera (a new sensor) and the
-    lights turned by R^T, light irradiance, the part of each face and the part BSDFs."""
+    lights turned by R^T, light irradiance, the part of each face and the part BSDFs (made in the
+    worker's `slots`)."""
     R = np.asarray(spec.shape.rotation, dtype=np.float64)
     with stage(timer, "mesh"):  # the split is defined on the rotated mesh, exactly as `build_mesh` gives it
         v32 = rotated_vertices(spec.shape, pooled.vertices).astype(np.float32)
         parts = split_faces(v32, pooled.faces.astype(np.uint32), spec.split)
         used = np.flatnonzero(np.bincount(parts, minlength=len(spec.materials)))
-    # BSDFs in the order of their kind, as the fresh build creates them (drjit numbers instances in
-    # creation order and the kernel depends on it)
+    # BSDFs in slots of their kind (drjit numbers instances in creation order and the kernel depends on
+    # it), in the order of their slot kind
+    wanted = sorted((slot_kind(spec.materials[p]), p) for p in used.tolist())
     bsdfs: list = [None] * len(spec.materials)
-    for p in sorted(used.tolist(), key=lambda p: (spec.materials[p].kind, p)):
-        bsdfs[p] = _bsdf(mi, spec, p, timer)
+    made = slots.fill([(kind, lambda p=p: _bsdf(mi, spec, p, timer)) for kind, p in wanted])
+    for (_, p), b in zip(wanted, made):
+        bsdfs[p] = b
     with stage(timer, "scene update"):
         # a new sensor every frame, not an update: its sampler's seed is set when it is created
         # (Mitsuba's samplers mix that seed with the one `mi.render` gets)
