@@ -99,7 +99,9 @@ class ScenePool:
         return len(self._scenes)
 
     def clear(self) -> None:
+        """Drop everything the pool keeps alive: scenes, batches and the BSDFs in its slots."""
         self._scenes.clear()
+        self.bsdfs = BsdfSlots()
         self.batches = None
 
     def trim(self, keep: int | None) -> None:
