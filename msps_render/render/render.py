@@ -40,11 +40,12 @@ def render_frame(spec: SceneSpec, variant: str | None = None, threads: int | Non
     cost as a fresh scene).  Every other frame is built fresh (`render_fresh`)."""
     variant = variant or resolve_variant(spec.mode)
     mi = activate(variant, threads)
+    slots = scenes.bsdfs if scenes is not None else None  # the worker's BSDF slots (`render.slots`)
     if spec.mode == "spectral":  # not split into steps: all of it is timed as "render"
         with stage(timer, "render"):
-            return render_spectral_frame(spec, mi, variant, per_light=per_light)
+            return render_spectral_frame(spec, mi, variant, per_light=per_light, slots=slots)
     if not poolable(spec, mi):
-        return render_fresh(spec, variant, threads, per_light, timer)
+        return render_fresh(spec, variant, threads, per_light, timer, slots)
     scenes = scenes if scenes is not None else ScenePool(max_scenes=1)
     with scenes.frame(spec, mi, timer) as pooled:
         with stage(timer, "ground truth"):
@@ -56,13 +57,13 @@ def render_frame(spec: SceneSpec, variant: str | None = None, threads: int | Non
 
 
 def render_fresh(spec: SceneSpec, variant: str | None = None, threads: int | None = None,
-                 per_light: bool = False, timer: StageTimer | None = None) -> Frame:
+                 per_light: bool = False, timer: StageTimer | None = None, slots=None) -> Frame:
     """Render one RGB scene from a scene built for it alone (`mi.load_dict` of `build_scene_dict`):
     every frame `render_frame` does not pool, and the reference the pooled frames are tested
-    against (tests/test_pool.py)."""
+    against (tests/test_pool.py).  `slots`: the worker's BSDF slots (the same pixels, fewer kernels)."""
     variant = variant or resolve_variant(spec.mode)
     mi = activate(variant, threads)
-    d = build_scene_dict(spec, mi, timer)
+    d = build_scene_dict(spec, mi, timer, slots=slots)
     with stage(timer, "scene load"):
         scene = mi.load_dict(d)
     with stage(timer, "ground truth"):

@@ -101,19 +101,30 @@ def geometry_shapes(mi, spec: SceneSpec) -> dict:
     return {"object": m}
 
 
-def _shapes(mi, spec: SceneSpec, timer: StageTimer | None = None) -> dict:
-    """Mitsuba shapes (one per material part), built from memory."""
+def _part_bsdfs(mi, spec: SceneSpec, parts, timer: StageTimer | None, slots) -> dict:
+    """{part: loaded BSDF} for the parts used, made in the order of their (slot) kind: drjit numbers
+    instances in creation order and the kernel depends on that order, so [merl, diffuse] and
+    [diffuse, merl] would compile two kernels; sorted, they share one.  With the worker's `slots`
+    (`render.slots`) a new mix of kinds it has seen keeps the kernel too."""
+    if slots is None:
+        return {p: _bsdf(mi, spec, p, timer) for p in sorted(parts, key=lambda p: (spec.materials[p].kind, p))}
+    from msps_render.render.slots import slot_kind
+
+    wanted = sorted((slot_kind(spec.materials[p]), p) for p in parts)
+    made = slots.fill([(kind, lambda p=p: _bsdf(mi, spec, p, timer)) for kind, p in wanted])
+    return {p: b for (_, p), b in zip(wanted, made)}
+
+
+def _shapes(mi, spec: SceneSpec, timer: StageTimer | None = None, slots=None) -> dict:
+    """Mitsuba shapes (one per material part), built from memory (BSDFs in `slots` when given)."""
     if spec.shape.kind == "sphere":
-        return {"part0": {"type": "sphere", "radius": spec.shape.radius, "bsdf": _bsdf(mi, spec, 0, timer)}}
+        return {"part0": {"type": "sphere", "radius": spec.shape.radius,
+                          "bsdf": _part_bsdfs(mi, spec, [0], timer, slots)[0]}}
     with stage(timer, "mesh"):  # the BSDFs inside are timed apart (nested stage)
         mesh = object_mesh(spec, timer)
         R = np.asarray(spec.shape.rotation, dtype=np.float64)  # world = object @ R.T
         pieces = list(part_pieces(mesh.faces, face_parts(mesh, spec.split), len(mesh.vertices)))
-        # BSDFs are created in the order of their kind, not of their part: drjit numbers
-        # instances in creation order and the kernel depends on that order, so [merl, diffuse]
-        # and [diffuse, merl] would compile two kernels; sorted, they share one.
-        bsdfs = {p: _bsdf(mi, spec, p, timer)
-                 for p in sorted((p for p, _, _ in pieces), key=lambda p: (spec.materials[p].kind, p))}
+        bsdfs = _part_bsdfs(mi, spec, [p for p, _, _ in pieces], timer, slots)
         out = {}
         for p, used, faces in pieces:
             props = mi.Properties()
@@ -181,18 +192,19 @@ def _bound(mi) -> "mi.Mesh":
     return m
 
 
-def build_scene_dict(spec: SceneSpec, mi, timer: StageTimer | None = None, env_factor: float = 1.0) -> dict:
+def build_scene_dict(spec: SceneSpec, mi, timer: StageTimer | None = None, env_factor: float = 1.0,
+                     slots=None) -> dict:
     """The `mi.load_dict` description of a SceneSpec (needs the variant set).
 
     `env_factor` multiplies the environment's radiance (spectral mode's RGB->spectrum
     correction); `timer` times mesh building and material loading apart from the rest
-    ('scene dict').
+    ('scene dict'); `slots`: the worker's `render.slots.BsdfSlots` for the part BSDFs (None: new ones).
     """
     with stage(timer, "scene dict"):
-        return _scene_dict(spec, mi, timer, env_factor)
+        return _scene_dict(spec, mi, timer, env_factor, slots)
 
 
-def _scene_dict(spec: SceneSpec, mi, timer: StageTimer | None, env_factor: float) -> dict:
+def _scene_dict(spec: SceneSpec, mi, timer: StageTimer | None, env_factor: float, slots=None) -> dict:
     integ = spec.integrator
     if one_pass(spec, mi):
         mus = list(spec.rig.anisotropy) if spec.rig is not None and spec.rig.anisotropy else []
@@ -206,7 +218,7 @@ def _scene_dict(spec: SceneSpec, mi, timer: StageTimer | None, env_factor: float
     else:
         integrator = {"type": "direct", "hide_emitters": True}
     d = {"type": "scene", "integrator": integrator, "sensor": _sensor(mi, spec)}
-    d.update(_shapes(mi, spec, timer))
+    d.update(_shapes(mi, spec, timer, slots))
     d[BOUND_KEY] = _bound(mi)
     for k, l in enumerate(spec.lights):
         if l.kind == "directional":

@@ -183,14 +183,14 @@ def _render_light_in_film(mi, spec: SceneSpec, k: int, E: np.ndarray, S: np.ndar
 
 
 def one_pass_dict(mi, spec: SceneSpec, S: np.ndarray, spectra: list[np.ndarray], R: np.ndarray,
-                  env_factor: float | None) -> tuple[dict, list[str], dict]:
+                  env_factor: float | None, slots=None) -> tuple[dict, list[str], dict]:
     """(scene dict, emitter ids, bands per emitter id) of a one-pass spectral render: lights emit a flat
     unit spectrum, their emission folded into their bands; load the dict, then give the integrator the
     bands (`set_bands(GRID, bands)`).  Only the lights the camera sees are traced."""
     visible = [k for k in range(len(spec.lights)) if R[:, k].sum() > 0]  # the camera sees light k
     ids = [light_key(k) for k in visible] + ([ENV_KEY] if spec.environment is not None else [])
     integ = spec.integrator
-    d = build_scene_dict(spec, mi, env_factor=env_factor or 1.0)  # env scale x factor folded into its bitmap
+    d = build_scene_dict(spec, mi, env_factor=env_factor or 1.0, slots=slots)  # env scale x factor in its bitmap
     mus = list(spec.rig.anisotropy) if spec.rig is not None and spec.rig.anisotropy else []
     d["integrator"] = integrator_dict(integ.kind, integ.max_depth, ids, hide_emitters=True,
                                       anisotropy=[mus[k] for k in visible] + [0.0] * (len(ids) - len(visible))
@@ -204,13 +204,13 @@ def one_pass_dict(mi, spec: SceneSpec, S: np.ndarray, spectra: list[np.ndarray],
 
 
 def _render_one_pass(mi, spec: SceneSpec, S: np.ndarray, spectra: list[np.ndarray], R: np.ndarray,
-                     env_factor: float | None):
+                     env_factor: float | None, slots=None):
     """Every emitter from ONE render (`msps_multilight`), with the emission folded into each
     emitter's own bands as `_render_light_in_film` does: light k emits a flat unit spectrum and its
     four wavelengths per path are drawn from its bands E_k·S_i, the environment's from S_i.
     Returns (ground truth, images: lights in order, then the environment)."""
     integ = spec.integrator
-    d, ids, bands = one_pass_dict(mi, spec, S, spectra, R, env_factor)
+    d, ids, bands = one_pass_dict(mi, spec, S, spectra, R, env_factor, slots)
     scene = mi.load_dict(d)
     gt = ground_truth(mi, scene, spec)
     zero = np.zeros(gt[0].shape[:2] + (S.shape[1],), np.float32)
@@ -225,11 +225,12 @@ def _render_one_pass(mi, spec: SceneSpec, S: np.ndarray, spectra: list[np.ndarra
 
 
 def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = False,
-                          emission_in_film: bool = True) -> Frame:
+                          emission_in_film: bool = True, slots=None) -> Frame:
     """Render a spectral SceneSpec. `emission_in_film=False` renders the literal set-up (lights
     emit their spectra, film bands = camera sensitivities; always one render per emitter): same
     expectation, much noisier for narrow LEDs; kept for validation (tests compare both).
-    A spectral rig (`spec.rig.is_spectral`) renders its M channels and composes its shots."""
+    A spectral rig (`spec.rig.is_spectral`) renders its M channels and composes its shots.
+    `slots`: the worker's BSDF slots for the one-pass render (`render.slots`; the same pixels)."""
     camera_id, S = camera_bands(spec)
     if spec.rig is not None and not emission_in_film and S.shape[1] != 3:
         raise ValueError(f"the literal spectral set-up reads three channels; this rig has {S.shape[1]} "
@@ -239,7 +240,7 @@ def render_spectral_frame(spec: SceneSpec, mi, variant: str, per_light: bool = F
     gt = None
     lights_mode = "one-pass" if emission_in_film and one_pass(spec, mi) else "per-light"
     if lights_mode == "one-pass":
-        gt, images = _render_one_pass(mi, spec, S, spectra, R, env_factor)
+        gt, images = _render_one_pass(mi, spec, S, spectra, R, env_factor, slots)
     elif emission_in_film:
         ref = with_lights(spec, "per-light")  # the reference: one Mitsuba render per emitter
         images = []
