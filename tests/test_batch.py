@@ -477,16 +477,33 @@ def test_point_lights_batch_to_the_closed_form(rgb_variant):
                 assert lit.sum() > 500 and rel.mean() < 0.01, (b, k, c, rel.mean())
 
 
-def _near_field_specs(n: int, extra=()) -> list[SceneSpec]:
+def _preset_specs(preset: str, n: int, sets=()) -> list[SceneSpec]:
+    """The first n scenes of `preset`'s first shard (with `--set` overrides)."""
     from msps_render.pipeline.config import load_config
     from msps_render.pipeline.plan import frame_rngs, frame_seed, plan
     from msps_render.scene.sample import sample_scene
 
-    cfg = load_config("near-field", ["dataset.n_shards=1", "scene.camera.width=64", "scene.camera.height=64",
-                                     *extra])
+    cfg = load_config(preset, ["dataset.n_shards=1", *sets])
     t = plan(cfg)[0]
-    return [sample_scene(cfg.scene, rng, seed=frame_seed(t, j), frame_index=j)
-            for j, rng in enumerate(frame_rngs(t, n))]
+    return [sample_scene(cfg.scene, rng, seed=frame_seed(t, j), frame_index=j) for j, rng in enumerate(frame_rngs(t, n))]
+
+
+def _shots_to_their_noise(f, s: SceneSpec, variant: str):
+    """Frame `f` of a batch against scene `s` rendered alone and again with another seed: the same mask and
+    parts, every shot's channel means over the object within 2 %, and the mean |batched - alone| the mean
+    |seed a - seed b| of the frame alone within 15 % (two independent renders differ by sqrt 2 sigma).
+    Returns the frame rendered alone."""
+    one = render_frame(s, variant, threads=1)
+    other = render_frame(s.model_copy(update={"integrator": s.integrator.model_copy(
+        update={"seed": s.integrator.seed + 7})}), variant, threads=1)
+    m = one.mask
+    assert m.mean() > 0.1 and np.array_equal(f.mask, m) and np.array_equal(f.part, one.part)
+    assert f.shots.shape == one.shots.shape
+    ratio = f.shots[:, m].mean(1) / one.shots[:, m].mean(1)
+    assert np.abs(ratio - 1).max() < 0.02, np.abs(ratio - 1).max()
+    d_batch, d_seed = np.abs(f.shots - one.shots)[:, m].mean(), np.abs(other.shots - one.shots)[:, m].mean()
+    assert abs(d_batch / d_seed - 1) < 0.15, (d_batch, d_seed)
+    return one
 
 
 def test_near_field_frames_batch_with_the_unbatched_truth_and_radiance(rgb_variant):
@@ -499,27 +516,20 @@ def test_near_field_frames_batch_with_the_unbatched_truth_and_radiance(rgb_varia
     from msps_render.render.batch import batchable, layout, render_batch
     from msps_render.render.variant import activate
 
-    specs = _near_field_specs(2, ["scene.integrator.spp=16"])
+    specs = _preset_specs("near-field", 2, ["scene.camera.width=64", "scene.camera.height=64",
+                                            "scene.integrator.spp=16"])
     twin = specs[1].model_copy(update={"shape": specs[0].shape.model_copy(update={"rotation": specs[1].shape.rotation})})
     specs = [specs[0], twin]
     assert specs[0].camera.kind == "perspective" and len(specs[0].lights) == 49
     assert batchable(specs, activate(rgb_variant, 1))
     assert layout(specs[0], 2)[0] > 2 * specs[0].camera.distance  # a camera ray never reaches another cell
     batched = render_batch(specs, rgb_variant, threads=1)
-    for b, s in enumerate(specs):
-        one = render_frame(s, rgb_variant, threads=1)
-        other = render_frame(s.model_copy(update={"integrator": s.integrator.model_copy(
-            update={"seed": s.integrator.seed + 7})}), rgb_variant, threads=1)
-        f, m = batched[b], one.mask
-        assert m.mean() > 0.15 and np.array_equal(f.mask, m) and np.array_equal(f.part, one.part), b
-        assert np.abs(f.depth - one.depth).max() < 2e-3 and np.abs(f.points - one.points)[m].max() < 2e-3, b
-        assert (np.abs(f.normal - one.normal).max(-1) > 1e-3).sum() <= max(2, 5e-4 * m.sum()), b
-        assert f.shots.shape == one.shots.shape == (49, 64, 64, 3)
-        mean_b, mean_1 = f.shots[:, m].mean((1, 2)), one.shots[:, m].mean((1, 2))
-        assert np.abs(mean_b / mean_1 - 1).max() < 0.02, (b, np.abs(mean_b / mean_1 - 1).max())
-        d_batch = np.abs(f.shots - one.shots)[:, m].mean()
-        d_seed = np.abs(other.shots - one.shots)[:, m].mean()
-        assert abs(d_batch / d_seed - 1) < 0.15, (b, d_batch, d_seed)
+    for f, s in zip(batched, specs):
+        one = _shots_to_their_noise(f, s, rgb_variant)
+        m = one.mask
+        assert np.abs(f.depth - one.depth).max() < 2e-3 and np.abs(f.points - one.points)[m].max() < 2e-3
+        assert (np.abs(f.normal - one.normal).max(-1) > 1e-3).sum() <= max(2, 5e-4 * m.sum())
+        assert f.shots.shape == (49, 64, 64, 3)
 
 
 def test_a_batched_near_field_shard_verifies_repeats_and_has_the_unbatched_patches(tmp_path):
@@ -586,49 +596,28 @@ def test_narrowband_preset_frames_batch_with_the_unbatched_truth_and_shots(spect
     batches: masks and parts as one frame at a time, the same light responses in the frame's meta, and
     every channel's shot to its noise (mean over the object within 2 %, observed <= 0.9 %; the mean
     |batched - unbatched| the mean |seed a - seed b| within 15 %, observed 1.01-1.06)."""
-    from msps_render.pipeline.config import load_config
-    from msps_render.pipeline.plan import frame_rngs, frame_seed, plan
     from msps_render.render.batch import frames_per_launch, render_batch
-    from msps_render.scene.sample import sample_scene
 
-    cfg = load_config("narrowband", ["dataset.n_shards=1", "scene.camera.width=64", "scene.camera.height=64"])
-    t = plan(cfg)[0]
-    specs = [sample_scene(cfg.scene, rng, seed=frame_seed(t, j), frame_index=j)
-             for j, rng in enumerate(frame_rngs(t, 2))]
+    specs = _preset_specs("narrowband", 2, ["scene.camera.width=64", "scene.camera.height=64"])
     # the memory cap counts film: 6 lights x 6 channels are 12 three-channel images, 128 // 12 frames
     assert frames_per_launch(64, specs[0]) == 10
     batched = render_batch(specs, spectral_variant, threads=1)
-    for b, s in enumerate(specs):
-        one = render_frame(s, spectral_variant, threads=1)
-        other = render_frame(s.model_copy(update={"integrator": s.integrator.model_copy(
-            update={"seed": s.integrator.seed + 7})}), spectral_variant, threads=1)
-        f, m = batched[b], one.mask
-        assert m.mean() > 0.1 and np.array_equal(f.mask, m) and np.array_equal(f.part, one.part), b
+    for f, s in zip(batched, specs):
+        one = _shots_to_their_noise(f, s, spectral_variant)
         np.testing.assert_allclose(f.meta["light_response"], one.meta["light_response"], rtol=1e-6)
         assert f.meta["crosstalk_effective"] == one.meta["crosstalk_effective"]
-        mean_b, mean_1 = f.shots[:, m].mean(1), one.shots[:, m].mean(1)
-        assert np.abs(mean_b / mean_1 - 1).max() < 0.02, (b, mean_b / mean_1)
-        d_batch = np.abs(f.shots - one.shots)[:, m].mean()
-        d_seed = np.abs(other.shots - one.shots)[:, m].mean()
-        assert abs(d_batch / d_seed - 1) < 0.15, (b, d_batch, d_seed)
 
 
 def test_mesh_file_shapes_batch_with_the_unbatched_truth(rgb_variant, shared_data):
     """Shapes read from mesh files (`diligent-rig`'s test meshes; its 96 lights allow one frame a launch, so
     here under three lights) batch: masks and parts as one frame at a time, normals and depth to rounding
     but a few grazing pixels, and the mean radiance to its noise (observed <= 0.5 % at 16 spp)."""
-    from msps_render.pipeline.config import load_config
-    from msps_render.pipeline.plan import frame_rngs, frame_seed, plan
     from msps_render.render.batch import batchable, render_batch
     from msps_render.render.variant import activate
-    from msps_render.scene.sample import sample_scene
 
-    cfg = load_config("diligent-rig", ["dataset.n_shards=1", "dataset.frames_per_shard=3", "scene.camera.width=96",
-                                       "scene.camera.height=96"])
-    t = plan(cfg)[0]
     lights = three_lights(30.0, (0.0, 120.0, 240.0), irradiance=E)
-    specs = [sample_scene(cfg.scene, rng, seed=frame_seed(t, j), frame_index=j).model_copy(
-        update={"lights": lights, "rig": None}) for j, rng in enumerate(frame_rngs(t, 3))]
+    specs = [s.model_copy(update={"lights": lights, "rig": None}) for s in _preset_specs(
+        "diligent-rig", 3, ["dataset.frames_per_shard=3", "scene.camera.width=96", "scene.camera.height=96"])]
     assert {s.shape.kind for s in specs} == {"mesh"} and len({s.shape.name for s in specs}) == 3
     assert batchable(specs, activate(rgb_variant, 1))
     batched = render_batch(specs, rgb_variant, threads=1)

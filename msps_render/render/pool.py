@@ -34,8 +34,8 @@ from typing import Iterator
 import numpy as np
 
 from msps_render.render.multilight import PART_ATTRIBUTE, integrator_dict
-from msps_render.render.slots import BsdfSlots, slot_kind
-from msps_render.render.scene_dict import BOUND_KEY, _bound, _bsdf, _sensor, camera_to_world, emitter_ids, \
+from msps_render.render.slots import BsdfSlots
+from msps_render.render.scene_dict import BOUND_KEY, _bound, part_bsdfs, _sensor, camera_to_world, emitter_ids, \
     light_key, one_pass
 from msps_render.scene.geometry import vertex_normals
 from msps_render.scene.shapes import canonical_mesh, rotated_vertices, split_faces
@@ -189,13 +189,8 @@ def _update(mi, pooled: PooledScene, spec: SceneSpec, timer: StageTimer | None, 
         v32 = rotated_vertices(spec.shape, pooled.vertices).astype(np.float32)
         parts = split_faces(v32, pooled.faces.astype(np.uint32), spec.split)
         used = np.flatnonzero(np.bincount(parts, minlength=len(spec.materials)))
-    # BSDFs in slots of their kind (drjit numbers instances in creation order and the kernel depends on
-    # it), in the order of their slot kind
-    wanted = sorted((slot_kind(spec.materials[p]), p) for p in used.tolist())
-    bsdfs: list = [None] * len(spec.materials)
-    made = slots.fill([(kind, lambda p=p: _bsdf(mi, spec, p, timer)) for kind, p in wanted])
-    for (_, p), b in zip(wanted, made):
-        bsdfs[p] = b
+    made = part_bsdfs(mi, spec, used.tolist(), timer, slots)  # in the worker's slots, as a fresh scene's
+    bsdfs = [made.get(p) for p in range(len(spec.materials))]
     with stage(timer, "scene update"):
         # a new sensor every frame, not an update: its sampler's seed is set when it is created
         # (Mitsuba's samplers mix that seed with the one `mi.render` gets)

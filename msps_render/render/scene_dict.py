@@ -101,7 +101,7 @@ def geometry_shapes(mi, spec: SceneSpec) -> dict:
     return {"object": m}
 
 
-def _part_bsdfs(mi, spec: SceneSpec, parts, timer: StageTimer | None, slots) -> dict:
+def part_bsdfs(mi, spec: SceneSpec, parts, timer: StageTimer | None, slots) -> dict:
     """{part: loaded BSDF} for the parts used, made in the order of their (slot) kind: drjit numbers
     instances in creation order and the kernel depends on that order, so [merl, diffuse] and
     [diffuse, merl] would compile two kernels; sorted, they share one.  With the worker's `slots`
@@ -119,12 +119,12 @@ def _shapes(mi, spec: SceneSpec, timer: StageTimer | None = None, slots=None) ->
     """Mitsuba shapes (one per material part), built from memory (BSDFs in `slots` when given)."""
     if spec.shape.kind == "sphere":
         return {"part0": {"type": "sphere", "radius": spec.shape.radius,
-                          "bsdf": _part_bsdfs(mi, spec, [0], timer, slots)[0]}}
+                          "bsdf": part_bsdfs(mi, spec, [0], timer, slots)[0]}}
     with stage(timer, "mesh"):  # the BSDFs inside are timed apart (nested stage)
         mesh = object_mesh(spec, timer)
         R = np.asarray(spec.shape.rotation, dtype=np.float64)  # world = object @ R.T
         pieces = list(part_pieces(mesh.faces, face_parts(mesh, spec.split), len(mesh.vertices)))
-        bsdfs = _part_bsdfs(mi, spec, [p for p, _, _ in pieces], timer, slots)
+        bsdfs = part_bsdfs(mi, spec, [p for p, _, _ in pieces], timer, slots)
         out = {}
         for p, used, faces in pieces:
             props = mi.Properties()
