@@ -96,15 +96,16 @@ def writing(path: str | Path) -> Iterator[None]:
         raise WriteFailed(path, code) from None
 
 
-def save_array(path: str | Path, a) -> Path:
-    """`np.save` to `path` atomically (numpy reports a short write without the errno or the file)."""
+def save_array(path: str | Path, a, unique: bool = False) -> Path:
+    """`np.save` to `path` atomically (`atomic_write`, `unique` as there).  Why through memory: numpy
+    writing to a file reports a full disk in its own words, without the errno or the file."""
     import io
 
     import numpy as np
 
     buf = io.BytesIO()
     np.save(buf, a, allow_pickle=False)
-    return write_bytes(path, buf.getbuffer())
+    return write_bytes(path, buf.getbuffer(), unique)
 
 
 def save_figure(fig, path: str | Path, **kw) -> Path:

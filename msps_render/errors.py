@@ -42,7 +42,8 @@ class WriteFailed(OSError):
 WRITE_FAULTS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG)
 # HDF5 (through h5py) wraps the errno in its own message: "..., errno = 28, error message = ...".
 _WRAPPED_ERRNO = re.compile(r"errno = (\d+)")
-# numpy (`np.save`, `tofile`) reports a short write without the errno: "12288 requested and 992 written".
+# numpy (`np.save`, `tofile`) reports a short write without the errno: "12288 requested and 992 written"
+# (and a full disk as "Not enough free space to write ...": so arrays go through `atomic.save_array`).
 _SHORT_WRITE = re.compile(r"^\d+ requested and \d+ written$")
 SHORT_WRITE = -1  # the code `write_fault` gives that case (the OS's reason is unknown)
 

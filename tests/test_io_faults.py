@@ -29,14 +29,15 @@ pytestmark = pytest.mark.usefixtures("force_llvm")  # LLVM even where CUDA is pr
 DEMO4 = ["dataset.n_shards=4"]  # shards of 340-670 KB, uneven: a size limit between them stops the run midway
 
 
-def cli(*args, fsize: int | None = None, timeout: int = 300) -> subprocess.CompletedProcess:
-    """`msps ARGS` in a child; `fsize`: its RLIMIT_FSIZE in bytes (writes past it: EFBIG)."""
+def cli(*args, fsize: int | None = None, timeout: int = 300, **env) -> subprocess.CompletedProcess:
+    """`msps ARGS` in a child; `fsize`: its RLIMIT_FSIZE in bytes (writes past it: EFBIG); `env`: more
+    environment variables."""
 
     def limit():
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # else the kernel kills the writer instead of EFBIG
         resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
 
-    env = dict(os.environ, MSPS_THREADS="1", TQDM_DISABLE="1")
+    env = dict(os.environ, MSPS_THREADS="1", TQDM_DISABLE="1", **env)
     return subprocess.run([sys.executable, "-m", "msps_render.cli", *map(str, args)], capture_output=True,
                           text=True, env=env, timeout=timeout, preexec_fn=limit if fsize else None)
 
@@ -283,6 +284,16 @@ def test_render_on_a_full_disk_is_refused_first_then_stops_cleanly_and_resumes(t
     assert r.returncode == 0, r.stderr[-2000:]
     assert cli("verify", out).returncode == 0  # every shard complete, checksums and manifest agree
     assert len(read_manifest(out)["shards"]) == 8
+
+
+def test_a_table_cache_on_a_full_disk_is_one_line(tmpfs, tmp_path):
+    """A render bakes each measured material into the table cache (17.5 MB float32 tables).  With
+    that disk full, numpy's own message ("Not enough free space to write 17496000 bytes after offset
+    128": no errno, no file) came out as a traceback; now one line naming the table, no temporary."""
+    cache = tmpfs("4m")
+    line = one_line_error(cli("render", "demo", "--out", tmp_path / "ds", "--quiet", MSPS_CACHE_DIR=str(cache)))
+    assert line.startswith(f"error: {cache / 'brdf'}/") and ".npy: No space left on device" in line, line
+    assert listing(cache) == ["brdf"]
 
 
 def test_train_on_a_full_disk_keeps_the_last_checkpoint_and_resumes(reference, tmpfs, tmp_path):

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msps_render.atomic import atomic_write
+from msps_render.atomic import atomic_write, save_array
 from msps_render.errors import InputError
 
 RES_THETA_H = 90
@@ -137,9 +137,7 @@ def write_baked(path: str | os.PathLike, rgb: np.ndarray) -> Path:
     vals = np.where(np.isfinite(vals) & (vals >= 0), vals, np.float32(0.0))
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_write(p, unique=True) as tmp, open(tmp, "wb") as fh:  # unique: workers may bake at once
-        np.save(fh, np.ascontiguousarray(vals.reshape(3, -1).T), allow_pickle=False)
-    return p
+    return save_array(p, np.ascontiguousarray(vals.reshape(3, -1).T), unique=True)  # workers may bake at once
 
 
 def map_baked(path: str | os.PathLike) -> np.ndarray:

@@ -49,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
+from msps_render.atomic import save_array
 from msps_render.export.formats import ExportFormat, register
 from msps_render.io.png16 import encode_normal, to_unorm, write_png
 from msps_render.export.source import ExportFrame
@@ -121,7 +122,7 @@ def write_rig_lights(ef, d: Path, s: float, intensities: bool = True) -> None:
     if ef.near:
         (d / "light_positions.txt").write_text(fmt_rows(light_positions(ef.nominal)))
         (d / "light_positions_true.txt").write_text(fmt_rows(light_positions(ef.rig)))
-        np.save(d / "points.npy", np.asarray(ef.points, np.float32))
+        save_array(d / "points.npy", np.asarray(ef.points, np.float32))  # a full disk: one line
         if ef.rig.anisotropy is not None:  # LED radiant intensity cos^mu about its axis (toward the object centre)
             (d / "light_anisotropy.txt").write_text("".join(f"{float(mu):.9g}\n" for mu in ef.rig.anisotropy))
 
