@@ -289,10 +289,12 @@ def test_render_on_a_full_disk_is_refused_first_then_stops_cleanly_and_resumes(t
 def test_a_table_cache_on_a_full_disk_is_one_line(tmpfs, tmp_path):
     """A render bakes each measured material into the table cache (17.5 MB float32 tables).  With
     that disk full, numpy's own message ("Not enough free space to write 17496000 bytes after offset
-    128": no errno, no file) came out as a traceback; now one line naming the table, no temporary."""
+    128": no errno, no file) came out as a traceback; now one line naming the table and how to move the
+    cache (a user did not choose its place), and no temporary."""
     cache = tmpfs("4m")
     line = one_line_error(cli("render", "demo", "--out", tmp_path / "ds", "--quiet", MSPS_CACHE_DIR=str(cache)))
-    assert line.startswith(f"error: {cache / 'brdf'}/") and ".npy: No space left on device" in line, line
+    assert line.startswith(f"error: {cache / 'brdf'}/") and ".npy: No space left on device (the measured-table " \
+        "cache: set MSPS_CACHE_DIR to put it elsewhere); nothing finished is lost" in line, line
     assert listing(cache) == ["brdf"]
 
 
@@ -357,3 +359,15 @@ def test_shard_bytes_equal_the_default_drivers(tmp_path, monkeypatch):
         monkeypatch.undo()
         assert asked == ["core"]
         assert (tmp_path / f"core{i}.h5").read_bytes() == (tmp_path / f"sec2{i}.h5").read_bytes()
+
+
+def test_the_cache_hint_names_only_the_cache(tmp_path, monkeypatch):
+    """The MSPS_CACHE_DIR hint goes on faults in the cache msps chose, not in a folder the caller gave."""
+    from msps_render.brdf.analytic import cache_dir, cache_writes
+
+    monkeypatch.setenv("MSPS_CACHE_DIR", str(tmp_path))
+    for d, hinted in ((cache_dir(), True), (tmp_path / "mine", False)):
+        with pytest.raises(WriteFailed) as info, cache_writes(d):
+            raise WriteFailed(d / "t.npy", errno.ENOSPC)
+        assert str(info.value).startswith(f"{d / 't.npy'}: No space left on device")
+        assert ("MSPS_CACHE_DIR" in str(info.value)) == hinted and info.value.errno == errno.ENOSPC

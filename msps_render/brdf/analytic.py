@@ -9,6 +9,7 @@ Tables are deterministic functions of (model, params) and cached on disk under
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
@@ -102,6 +103,21 @@ def cache_dir() -> Path:
     return Path(base) / "msps" / "brdf"
 
 
+@contextlib.contextmanager
+def cache_writes(d: Path):
+    """Within: a write fault in the table cache `cache_dir()` (a full home disk, say) also says what the
+    file is and how to move the cache, since a user did not choose that place (`d`: where it writes)."""
+    from msps_render.errors import WriteFailed
+
+    try:
+        yield
+    except WriteFailed as e:
+        if Path(d) != cache_dir():
+            raise
+        raise WriteFailed(e.source, e.errno, f"{e.problem} (the measured-table cache: set MSPS_CACHE_DIR to put "
+                                             "it elsewhere)") from None
+
+
 def _canonical(params: dict) -> dict:
     out = {}
     for k in sorted(params):
@@ -122,4 +138,5 @@ def generated_table(model: str, params: dict, directory: str | os.PathLike | Non
     path = d / f"{table_key(model, params)}.binary"
     if path.is_file() and path.stat().st_size == merl.FILE_BYTES:
         return path
-    return merl.write_merl(path, make_table(model, _canonical(params)))
+    with cache_writes(d):
+        return merl.write_merl(path, make_table(model, _canonical(params)))

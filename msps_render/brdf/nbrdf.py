@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from msps_render.brdf import merl
-from msps_render.brdf.analytic import cache_dir
+from msps_render.brdf.analytic import cache_dir, cache_writes
 from msps_render.errors import InputError
 from msps_render.resources import data_dir
 
@@ -141,12 +141,13 @@ def baked_table(weights: str | os.PathLike, directory: str | os.PathLike | None 
     if path.is_file() and path.stat().st_size == merl.BAKED_FILE_BYTES:
         return path
     old = d / f"nbrdf-{p.stem}-{digest}-v1.binary"  # float64 cache of msps <= issue 21
-    if old.is_file():
-        try:
-            return merl.write_baked(path, merl.read_merl(old, dtype=np.float32).rgb)
-        except InputError:  # damaged or vanished: bake afresh
-            pass
-    return merl.write_baked(path, make_table(read_weights(p)))
+    with cache_writes(d):
+        if old.is_file():
+            try:
+                return merl.write_baked(path, merl.read_merl(old, dtype=np.float32).rgb)
+            except InputError:  # damaged or vanished: bake afresh
+                pass
+        return merl.write_baked(path, make_table(read_weights(p)))
 
 
 def rusinkiewicz_dirs(theta_h: float, theta_d: float, phi_d: float) -> tuple[np.ndarray, np.ndarray]:

@@ -37,7 +37,7 @@ from typing import NamedTuple
 import numpy as np
 
 from msps_render.brdf import merl
-from msps_render.brdf.analytic import cache_dir
+from msps_render.brdf.analytic import cache_dir, cache_writes
 from msps_render.brdf.library import resolve_table
 from msps_render.errors import InputError
 from msps_render.render.variant import register_plugin
@@ -72,7 +72,8 @@ def _baked_file(path: str) -> str:
         t = merl.read_merl(path, dtype=np.float32)
         if t.n_negative or t.n_nonfinite:
             log.info("%s: %d negative and %d non-finite entries set to 0", path, t.n_negative, t.n_nonfinite)
-        merl.write_baked(out, t.rgb)
+        with cache_writes(out.parent):
+            merl.write_baked(out, t.rgb)
     return str(out)
 
 
