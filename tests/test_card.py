@@ -54,11 +54,11 @@ def rendered(tmp_path_factory) -> Path:
 
 
 def _frames(root: Path) -> dict[str, list]:
-    import h5py
+    from msps_render.dataset.reader import open_shard  # registers the zstd filter (alone, h5py cannot read it)
 
     out = {"materials": [], "condition": [], "env_ratio": []}
     for p in sorted((root / "shards").glob("shard-*.h5")):
-        with h5py.File(p, "r") as h:
+        with open_shard(p) as h:
             out["materials"] += h[K.FRAME_MATERIALS].asstr()[()].tolist()
             out["condition"] += h[K.FRAME_CONDITION].asstr()[()].tolist()
             out["env_ratio"] += h[K.FRAME_ENV_RATIO][()].tolist()
