@@ -40,20 +40,21 @@ for s in "$oldsrc" "$newsrc"; do
   got=$(cd "$s" && PYTHONPATH="$s" "$py" -c 'import msps_render; print(msps_render.__file__)')
   case "$got" in "$s"/*) ;; *) echo "bench_corpus: $s imports $got, not its own code" >&2; exit 1;; esac
 done
-# warm the baked-table cache (and the import caches) with a 1-shard render of each
+extra() {  # NEW_SET's override, for the new ref's tree only
+  [ -n "${NEW_SET:-}" ] && [ "$1" = "$newsrc" ] && echo "--set $NEW_SET" || true
+}
+
+# warm the baked-table cache (and the import caches) with a 1-shard render of each, with the settings
+# its timed renders use (NEW_SET too: else the new tree's first round compiles what the old one's loads)
 for s in "$oldsrc" "$newsrc"; do
   (cd "$s" && PYTHONPATH="$s" "$py" -m msps_render.cli render paper-train --out "$out/warm" --force \
-      --set dataset.n_shards=1 --workers 1 > /dev/null)
+      --set dataset.n_shards=1 $(extra "$s") --workers 1 > /dev/null)
 done
 rm -rf "$out/warm"
 
 shards() {  # --set override of a preset's shard count (empty: the full preset)
   case "$1" in paper-train) n=${TRAIN_SHARDS:-};; *) n=${VAL_SHARDS:-};; esac
   [ -n "$n" ] && echo "--set dataset.n_shards=$n" || true
-}
-
-extra() {  # NEW_SET's override, for the new ref's tree only
-  [ -n "${NEW_SET:-}" ] && [ "$1" = "$newsrc" ] && echo "--set $NEW_SET" || true
 }
 
 for round in $(seq 1 "${ROUNDS:-1}"); do
