@@ -2,9 +2,14 @@
 # One visit to an offline GPU machine (docs/scaling.md "Running on a GPU"): install msps's missing
 # dependencies from a carried wheelhouse, verify CUDA rendering, measure rendering and training, and train
 # the `gpu` and `cpu` presets on corpora rendered there.  Every phase is time-boxed and logs to $OUT;
-# a failing phase does not stop the next.  Prepare here first:
-#   .venv/bin/python scripts/build_wheelhouse.py --out .whl --python 3.12 --no-hdf5plugin --no-msps
+# a failing phase does not stop the next.  Prepare here first (what travels, checkout included, must stay
+# under 64 MiB: the checkout ~19.5 MB, .gpu 2.5 MB, this wheelhouse 37.5 MB; 2026-12-05):
+#   .venv/bin/python scripts/build_wheelhouse.py --out .whl --python 3.12 --no-hdf5plugin --no-msps \
+#       --variants cuda_ad_rgb,scalar_rgb --have +kornia-rs,colour-science
 #   .venv/bin/python benchmarks/gpu_check.py reference --out .gpu/ref
+# RGB only: with cuda_ad_spectral (+ its 8.9 MB srgb.coeff) and colour-science (9.1 MB) the wheels are 62 MB,
+# too many to carry, so the spectral checks (narrow-band test, gpu_check's spectral-train) fail here;
+# every phase of issue 45 item 3 is RGB (renders and training run without colour-science: tested here).
 # then run (carrying .whl and .gpu):  bash benchmarks/gpu_visit.sh   (OUT=dir; BUDGET_S=seconds;
 # BATCH=frames per launch of the batched phases, 16; STEADY_S=130 adds >= 2-minute renders at 1, 4, 16 workers)
 set -u

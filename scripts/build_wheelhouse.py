@@ -160,13 +160,20 @@ def build_msps(dest: Path) -> None:
         sys.exit(f"error: building the msps wheel failed: {(r.stderr.strip().splitlines() or ['?'])[-1]}")
 
 
+def have_set(arg: str) -> set[str]:
+    """The distributions `--have` names (canonical), plus the default `HAVE` when it starts with '+'."""
+    named = {_canon(h) for h in arg.lstrip("+").split(",") if h}
+    return named | ({_canon(h) for h in HAVE} if arg.startswith("+") else set())
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, required=True, help="wheelhouse folder (replaced when complete)")
     ap.add_argument("--python", help="target Python, e.g. 3.12 (default: this interpreter's, this platform)")
     ap.add_argument("--platform", action="append", default=None,
                     help="target platform tag(s) (default with --python: manylinux x86_64 tags)")
-    ap.add_argument("--have", default=",".join(HAVE), help="comma-separated distributions the target already has")
+    ap.add_argument("--have", default=",".join(HAVE), help="comma-separated distributions the target already has "
+                    "(a leading '+' adds them to the default list, e.g. +kornia-rs,colour-science)")
     ap.add_argument("--no-hdf5plugin", action="store_true", help="leave out hdf5plugin (45 MB; lzf/gzip shards only)")
     ap.add_argument("--no-msps", action="store_true", help="dependencies only (the target runs msps from a checkout)")
     ap.add_argument("--full-mitsuba", action="store_true", help="keep the Mitsuba wheel whole")
@@ -175,7 +182,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     platforms = a.platform or ["manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64",
                                "manylinux2014_x86_64"]
-    have = {_canon(h) for h in a.have.split(",") if h}
+    have = have_set(a.have)
     if a.no_hdf5plugin:
         have.add("hdf5plugin")
     pins = closure(msps_requirements(EXTRAS), have)

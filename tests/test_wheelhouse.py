@@ -101,3 +101,12 @@ def test_a_requirement_not_installed_here_is_one_line(tmp_path, monkeypatch):
         W.main(["--out", str(tmp_path / "wh")])
     assert str(e.value) == "error: surely-not-a-package-msps is required but not installed here; run scripts/setup.sh first"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_have_adds_to_the_default_with_a_plus():
+    """`--have +a,b` is the default list and a, b (what the GPU visit carries: RGB only, 37.5 MB);
+    without '+', the list given is the whole list."""
+    default = W.have_set(",".join(W.HAVE))
+    plus = W.have_set("+kornia-rs,colour-science")
+    assert plus == default | {"kornia-rs", "colour-science"} and "torch" in plus
+    assert W.have_set("kornia_rs") == {"kornia-rs"}
