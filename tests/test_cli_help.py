@@ -82,3 +82,23 @@ def test_render_scene_writes_per_light_pngs_and_part_map_and_says_what_it_does(t
     for k in range(3):  # one shared exposure: light k's PNG is brightest where its EXR is
         assert per[k].shape == (32, 32, 3)
         assert np.corrcoef(per[k][mask].sum(-1), exr[k][mask].sum(-1))[0, 1] > 0.9
+
+
+@pytest.mark.parametrize("args, option", [
+    (["render", "demo", "--out", "{t}/d", "--threads", "-1"], "--threads"),  # was a drjit TypeError traceback
+    (["render", "demo", "--out", "{t}/d", "--workers", "0"], "--workers"),  # was: rendered in-process
+    (["render", "demo", "--out", "{t}/d", "--seed", "-1"], "--seed"),
+    (["render", "demo", "--out", "{t}/d", "--recycle-after", "-1"], "--recycle-after"),
+    (["render", "demo", "--out", "{t}/d", "--cores", "0"], "--cores"),
+    (["sample-scene", "--seed", "-1", "--out", "{t}/s.json"], "--seed"),  # was a numpy ValueError traceback
+    (["render-scene", "{t}/s.json", "--out", "{t}/r", "--threads", "0"], "--threads"),
+    (["config", "show", "demo", "--threads", "0"], "--threads"),
+    (["train", "cpu", "--data", "{t}", "--val", "{t}", "--out", "{t}/run", "--threads", "0"], "--threads"),
+    (["eval", "--data", "{t}", "--out", "{t}/e", "--max-patches", "0"], "--max-patches"),
+])
+def test_counts_out_of_range_are_refused_before_any_work(args, option, tmp_path):
+    """Counts and seeds below their range: a usage error naming the option (exit 2), nothing written."""
+    r = runner.invoke(app, [a.format(t=tmp_path) for a in args])
+    assert r.exit_code == 2, r.output
+    assert "Invalid value" in r.output and option in r.output and "Traceback" not in r.output, r.output
+    assert list(tmp_path.iterdir()) == []

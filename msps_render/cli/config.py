@@ -45,7 +45,7 @@ def show_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.to
                                             "plan (one ray per pixel; all frames if fewer: then the count "
                                             "is exact)"),
              variant: Optional[str] = typer.Option(None, help="Mitsuba variant for the probe"),
-             threads: Optional[int] = typer.Option(None, help="render threads for the probe"),
+             threads: Optional[int] = typer.Option(None, min=1, help="render threads for the probe"),
              as_json: bool = typer.Option(False, "--json", help="plan and estimates as JSON")):
     """Print the resolved config (every key, as TOML) and the planned work: conditions, shards,
     frames.  Nothing is rendered unless --probe N: then N frames are rendered into a temporary

@@ -15,8 +15,8 @@ from msps_render.errors import InputError, not_a_dataset
 @clean_errors
 def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.toml) or TOML path"),
                out: Path = typer.Option(..., "--out", "-o", help="dataset directory"),
-               seed: Optional[int] = typer.Option(None, help="root seed (overrides dataset.seed)"),
-               workers: int = typer.Option(1, help="local worker processes (or Dask LocalCluster size, "
+               seed: Optional[int] = typer.Option(None, min=0, help="root seed (overrides dataset.seed)"),
+               workers: int = typer.Option(1, min=1, help="local worker processes (or Dask LocalCluster size, "
                                                    "or Slurm jobs)"),
                scheduler: Optional[str] = typer.Option(None, help="'dask-local', 'slurm' or tcp://host:8786"),
                resume: bool = typer.Option(False, help="finish the dataset in --out with the config stored in its "
@@ -25,14 +25,14 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
                                                       "only) and render this config from scratch"),
                set_: List[str] = typer.Option([], "--set", help="override, e.g. lights.slant_deg=25"),
                variant: Optional[str] = typer.Option(None, help="Mitsuba variant"),
-               threads: Optional[int] = typer.Option(None, help="render threads per worker (default: cores / workers)"),
-               recycle_after: int = typer.Option(0, help="replace a local worker after N shards (0: never)"),
+               threads: Optional[int] = typer.Option(None, min=1, help="render threads per worker (default: cores / workers)"),
+               recycle_after: int = typer.Option(0, min=0, help="replace a local worker after N shards (0: never)"),
                quiet: bool = typer.Option(False, help="no progress bar"),
                space_check: bool = typer.Option(True, "--space-check/--no-space-check",
                                                 help="before rendering, refuse when the shards will not fit "
                                                      "in the free space (estimate: `msps config show --probe`)"),
                partition: Optional[str] = typer.Option(None, help="Slurm: partition (scheduler.slurm.partition)"),
-               cores: Optional[int] = typer.Option(None, help="Slurm: CPUs per worker job"),
+               cores: Optional[int] = typer.Option(None, min=1, help="Slurm: CPUs per worker job"),
                memory: Optional[str] = typer.Option(None, help="Slurm: memory per worker job, e.g. 4GB"),
                walltime: Optional[str] = typer.Option(None, help="Slurm: time limit per job, e.g. 04:00:00"),
                sbatch: List[str] = typer.Option([], "--sbatch", help="Slurm: extra sbatch option (repeatable), "

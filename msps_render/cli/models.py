@@ -70,7 +70,7 @@ def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAM
                                                   "(same network), fresh optimizer and schedule"),
               set_: List[str] = typer.Option([], "--set", help="override, e.g. train.max_minutes=10"),
               device: str = typer.Option("auto", help="auto (CUDA when usable, else CPU), cpu or cuda"),
-              threads: Optional[int] = typer.Option(None, help="torch CPU threads"),
+              threads: Optional[int] = typer.Option(None, min=1, help="torch CPU threads"),
               smoke: bool = typer.Option(False, "--smoke", help="a short check that the whole loop works on "
                                          "your data: a few minutes on 2 cores (docs/reproducing.md)"),
               json_out: bool = typer.Option(False, "--json", help="print the end summary as JSON")):
@@ -119,7 +119,7 @@ def eval_cmd(data: Path = typer.Option(..., help="dataset directory (test set)")
                                               "repeatable: --method lambertian beside --checkpoint compares "
                                               "both (default: net). A rig dataset also takes lambertian-robust "
                                               "(least squares without each pixel's darkest and brightest shots)"),
-             max_patches: Optional[int] = typer.Option(None, help="limit per condition"),
+             max_patches: Optional[int] = typer.Option(None, min=1, help="limit per condition"),
              steps: List[str] = _steps_option(True, DEFAULT_RENDERED),
              quiet: bool = typer.Option(False, help="no progress lines"),
              selfcal: bool = OLD_SELFCAL, refine: bool = OLD_REFINE, mirror: bool = OLD_MIRROR,
@@ -234,7 +234,7 @@ def bench_real_cmd(captures: List[Path] = typer.Argument(..., help="capture fold
                                                   "chosen: FILE (e.g. 001.png, in every folder) or "
                                                   "OBJECT/FILE (one folder); repeatable"),
                    srgb: bool = typer.Option(False, "--srgb", help=f"PNG photos are sRGB-encoded. Default: {PNG_RULE}; --srgb overrides"),
-                   threads: Optional[int] = typer.Option(None, help="torch CPU threads"),
+                   threads: Optional[int] = typer.Option(None, min=1, help="torch CPU threads"),
                    steps: List[str] = _steps_option(True, DEFAULT_PHOTOS),
                    quiet: bool = typer.Option(False, help="no progress lines"),
                    lights: Optional[str] = typer.Option(None, metavar="all|K", help="classic photometric stereo: "

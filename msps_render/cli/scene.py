@@ -15,7 +15,7 @@ from msps_render.cli.app import app, clean_errors
 def render_scene(scene: Path = typer.Argument(..., help="SceneSpec JSON (see `msps sample-scene`)"),
                  out: Path = typer.Option(..., "--out", "-o", help="output directory"),
                  variant: Optional[str] = typer.Option(None, help="Mitsuba variant (default: best available)"),
-                 threads: Optional[int] = typer.Option(None, help="render threads"),
+                 threads: Optional[int] = typer.Option(None, min=1, help="render threads"),
                  per_light: bool = typer.Option(False, "--per-light", help="also write one image per light")):
     """Render one scene: image/normal/depth EXR + PNG previews + scene.json."""
     from msps_render.pipeline.outdir import check_writable
@@ -41,7 +41,7 @@ def render_scene(scene: Path = typer.Argument(..., help="SceneSpec JSON (see `ms
 @app.command("sample-scene")
 @clean_errors
 def sample_scene_cmd(out: Path = typer.Option(..., "--out", "-o", help="SceneSpec JSON to write"),
-                     seed: int = typer.Option(0, help="seed"),
+                     seed: int = typer.Option(0, min=0, help="seed"),
                      config: Optional[Path] = typer.Option(None, help="TOML with a \\[scene] table (SceneConfig)"),
                      show: bool = typer.Option(False, help="print the scene summary")):
     """Draw one SceneSpec from a seed (default scene config) and save it as JSON."""
