@@ -34,7 +34,7 @@ def llvm_forced():
 
 
 def cli(*args, env_extra: dict | None = None, timeout: int = 300) -> subprocess.CompletedProcess:
-    env = dict(os.environ, MSPS_THREADS="1", **(env_extra or {}))
+    env = {**os.environ, "MSPS_THREADS": "1", **(env_extra or {})}
     return subprocess.run([sys.executable, "-m", "msps_render.cli", *map(str, args)], capture_output=True,
                           text=True, env=env, timeout=timeout)
 

@@ -325,3 +325,14 @@ def test_local_workers_share_the_cores(monkeypatch):
     assert worker_threads(3, 2) == 3  # given: kept
     monkeypatch.setenv("MSPS_THREADS", "2")
     assert worker_threads(None, 2) is None  # the environment decides (render.variant.activate reads it)
+
+
+@pytest.mark.parametrize("value", ["abc", "0", "-2"])
+def test_a_bad_thread_count_in_the_environment_is_one_line_before_any_work(value, tmp_path):
+    """MSPS_THREADS that is not a whole number >= 1: one line naming it, exit 1, no --out created (was a
+    traceback from int() or drjit, raised in a worker after dataset.json was written)."""
+    from cli_helpers import cli, one_line_error
+
+    r = cli("render", "demo", "--out", tmp_path / "ds", "--quiet", "--workers", "2", env_extra={"MSPS_THREADS": value})
+    assert one_line_error(r) == f"error: MSPS_THREADS: must be a whole number >= 1 (render threads), got {value!r}"
+    assert not (tmp_path / "ds").exists()

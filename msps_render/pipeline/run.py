@@ -24,7 +24,7 @@ from msps_render.pipeline.outdir import (OutLock, check_out_dir, remove_dataset,
                                          remove_temporaries, remove_unrecorded)
 from msps_render.pipeline.plan import Task, plan
 from msps_render.pipeline.validate import validate_inputs
-from msps_render.render.variant import mitsuba_info, resolve_variant
+from msps_render.render.variant import env_threads, mitsuba_info, resolve_variant
 
 
 def _dist_version(name: str) -> str | None:
@@ -148,6 +148,7 @@ def render_dataset(cfg: DatasetConfig, out: str | Path, workers: int = 1, schedu
     out = Path(out).expanduser().absolute()  # Dask workers resolve relative paths in their own cwd
     mode = "spectral" if getattr(cfg.scene, "mode", "rgb") == "spectral" else "rgb"
     variant = resolve_variant(mode, variant)  # a wrong --variant: one line first, not in a worker
+    env_threads()  # a bad MSPS_THREADS too
     validate_inputs(cfg, getattr(cfg, "_source", None))
     tasks = plan(cfg)
     check_out_dir(out, has_manifest=(out / MANIFEST).is_file())
@@ -170,7 +171,7 @@ def worker_threads(threads: int | None, workers: int) -> int | None:
     Why: with drjit's default (all cores) in every worker, 2 workers run 4 threads on 2 cores;
     measured on the full paper-train corpus, one thread per worker renders it in 254 s instead of
     311 s (docs/benchmarks.md "Full paper corpus").  None = drjit's default (one worker)."""
-    if threads or os.environ.get("MSPS_THREADS") or workers <= 1:
+    if threads or env_threads() or workers <= 1:
         return threads
     return max(1, (os.cpu_count() or 1) // workers)
 

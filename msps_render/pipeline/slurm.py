@@ -58,8 +58,9 @@ def with_flags(s: SlurmSettings, scheduler: str | None, **flags) -> SlurmSetting
 
 def render_threads(s: SlurmSettings, threads: int | None) -> int:
     """Render threads per worker: --threads, else MSPS_THREADS (seen by the driver), else the job's CPUs."""
-    env = os.environ.get("MSPS_THREADS")
-    return int(threads or (int(env) if env else 0) or s.cores)
+    from msps_render.render.variant import env_threads
+
+    return int(threads or env_threads() or s.cores)
 
 
 def _import_jobqueue():

@@ -171,6 +171,24 @@ def flush_denormals() -> bool:
         return False
 
 
+THREADS_ENV = "MSPS_THREADS"
+
+
+def env_threads() -> int | None:
+    """Render threads from $MSPS_THREADS, None when unset or empty; one `InputError` naming the variable when
+    it is not a whole number >= 1 (was a traceback from `int()` or from drjit)."""
+    v = os.environ.get(THREADS_ENV, "").strip()
+    if not v:
+        return None
+    try:
+        n = int(v)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise InputError(THREADS_ENV, f"must be a whole number >= 1 (render threads), got {v!r}")
+    return n
+
+
 def activate(variant: str, threads: int | None = None):
     """Set the Mitsuba variant (and thread count) for this process, with denormals flushed on this thread
     as on drjit's workers (`flush_denormals`); returns the `mi` module."""
@@ -180,7 +198,7 @@ def activate(variant: str, threads: int | None = None):
     flush_denormals()
     if mi.variant() != variant:
         mi.set_variant(variant)
-    threads = threads or (int(os.environ["MSPS_THREADS"]) if os.environ.get("MSPS_THREADS") else None)
+    threads = threads or env_threads()
     if threads:
         dr.set_thread_count(int(threads))
     return mi
