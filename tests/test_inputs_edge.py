@@ -125,6 +125,22 @@ def test_predict_out_keeps_dots():
     assert out_paths("runs/pred-v0.1.png")["npy"] == Path("runs/pred-v0.1.npy")
 
 
+def test_predict_refuses_an_image_with_no_pixel_to_predict(tmp_path):
+    """A black or all-negative image (default mask: positive radiance) or an empty mask: one line naming
+    the file, nothing written (before: blank outputs, written without a word)."""
+    np.save(tmp_path / "black.npy", np.zeros((48, 48, 3), np.float32))
+    np.save(tmp_path / "neg.npy", -np.ones((48, 48, 3), np.float32))
+    np.save(tmp_path / "ok.npy", np.full((48, 48, 3), 0.5, np.float32))
+    np.save(tmp_path / "mask.npy", np.zeros((48, 48), np.float32))
+    for image, extra, culprit, why in (("black.npy", [], "black.npy", "no pixel has positive radiance"),
+                                       ("neg.npy", [], "neg.npy", "no pixel has positive radiance"),
+                                       ("ok.npy", ["--mask", tmp_path / "mask.npy"], "mask.npy", "the mask is empty")):
+        line = one_line_error(cli("predict", tmp_path / image, *extra, "--method", "lambertian",
+                                  "--out", tmp_path / "p"))
+        assert line.startswith(f"error: {tmp_path / culprit}: no pixel to predict: {why}"), line
+        assert not list(tmp_path.glob("p*"))
+
+
 # ------------------------------------------------------------------ 4. one PNG rule for predict and compose
 def _pngs(tmp: Path) -> dict[str, Path]:
     """The same linear value 0.5 as msps writes it (gAMA 1.0, 16-bit), as an untagged 16-bit raw PNG,

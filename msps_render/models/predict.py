@@ -61,6 +61,9 @@ def read_inputs(image_path: str | Path, mask_path: str | Path | None,
             raise InputError(mask_path, f"mask is {mk.shape[1]}x{mk.shape[0]}, image is {img.shape[1]}x{img.shape[0]}")
     else:
         mk = img.sum(-1) > 0
+    if not mk.any():  # else every output is blank, written without a word
+        raise InputError(mask_path or image_path, "no pixel to predict: the mask is empty" if mask_path else
+                         "no pixel to predict: no pixel has positive radiance (the default mask); pass --mask")
     return img, mk
 
 
