@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msps_render.errors import InputError, closest
+from msps_render.errors import InputError, closest, read_text
 
 FORMAT = "msps-calibration-1"
 KEYS = ("format", "light_dirs", "slant_deg", "tilts_deg", "lights", "crosstalk", "source", "info")
@@ -200,12 +200,9 @@ def parse_calibration(d, source: str | Path = "<calibration>") -> tuple[np.ndarr
 
 def load_calibration_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     p = Path(path)
+    text = read_text(p, "calibration file")
     try:
-        d = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise InputError(p, "calibration file not found") from None
-    except OSError as e:
-        raise InputError(p, f"cannot read calibration file ({e.strerror})") from None
+        d = json.loads(text)
     except json.JSONDecodeError as e:
         raise InputError(p, f"not valid JSON ({e})") from None
     return parse_calibration(d, p)

@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from msps_render.errors import InputError
+from msps_render.errors import InputError, read_text
 
 IMAGE_SUFFIXES = (".png", ".exr", ".hdr", ".npy", ".tif", ".tiff", ".jpg", ".jpeg")
 NOT_PHOTOS = ("mask", "normal_gt", "normal", "preview")
@@ -86,7 +86,7 @@ def read_capture(root: str | Path) -> Capture:
         E = np.ones_like(L)
     fn = root / "filenames.txt"
     if fn.is_file():
-        names = [s.strip() for s in fn.read_text().splitlines() if s.strip()]
+        names = [s.strip() for s in read_text(fn, "filenames.txt").splitlines() if s.strip()]
         images = [root / s for s in names]
         src = fn
     else:

@@ -12,7 +12,7 @@ from typing import Any, Callable, TypeVar
 
 from pydantic import BaseModel, ConfigDict
 
-from msps_render.errors import InputError, closest, format_validation_error
+from msps_render.errors import InputError, closest, format_validation_error, read_text
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -43,10 +43,9 @@ class FrozenModel(StrictModel):
 
 def read_toml(path: str | Path, what: str = "config") -> dict:
     p = Path(path)
+    text = read_text(p, what)
     try:
-        return tomllib.loads(p.read_text())
-    except OSError as e:
-        raise InputError(p, f"cannot read {what} ({e.strerror})") from None
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise InputError(p, f"not valid TOML ({e})") from None
 

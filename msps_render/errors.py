@@ -73,6 +73,20 @@ def write_fault(exc: BaseException) -> int | None:
     return None
 
 
+def read_text(path: str | Path, what: str) -> str:
+    """A user's text file (UTF-8), or one `InputError` naming it: not found, unreadable, or not text (a binary
+    file passed by mistake was a UnicodeDecodeError traceback)."""
+    p = Path(path)
+    try:
+        return p.read_text()
+    except FileNotFoundError:
+        raise InputError(p, f"{what} not found") from None
+    except OSError as e:
+        raise InputError(p, f"cannot read {what} ({e.strerror or e})") from None
+    except UnicodeDecodeError as e:
+        raise InputError(p, f"{what} is not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset {e.start})") from None
+
+
 class WorkerDied(RuntimeError):
     """A worker process ended without reporting its shard (killed, crashed, out of memory)."""
 

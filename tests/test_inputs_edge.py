@@ -292,3 +292,30 @@ def test_messages_name_the_real_culprit(tmp_path):
             fn(missing)
     with pytest.raises(InputError, match="is a file, not a dataset directory"):
         load_manifest(tmp_path / "own16.png")
+
+
+def test_a_binary_file_where_text_is_read_is_one_line(tmp_path):
+    """A config, scene, calibration, manifest or filenames.txt that is not UTF-8 text (a binary file passed by
+    mistake): one line naming the file and the first bad byte, exit 1 (was a UnicodeDecodeError traceback)."""
+    junk = b"\xff\xfe{\x00"
+    for name in ("c.toml", "s.json", "cal.json"):
+        (tmp_path / name).write_bytes(junk)
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "dataset.json").write_bytes(junk)
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    (cap / "filenames.txt").write_bytes(junk)
+    np.savetxt(cap / "light_directions.txt", [[0.0, 0.0, 1.0]] * 3)
+    np.save(tmp_path / "ok.npy", np.full((48, 48, 3), 0.5, np.float32))
+    cases = [(["render", tmp_path / "c.toml", "--out", tmp_path / "o"], tmp_path / "c.toml", "config"),
+             (["train", tmp_path / "c.toml", "--data", tmp_path, "--val", tmp_path, "--out", tmp_path / "t"],
+              tmp_path / "c.toml", "config"),
+             (["render-scene", tmp_path / "s.json", "--out", tmp_path / "r"], tmp_path / "s.json", "scene file"),
+             (["predict", tmp_path / "ok.npy", "--calibration", tmp_path / "cal.json", "--out", tmp_path / "p"],
+              tmp_path / "cal.json", "calibration file"),
+             (["verify", tmp_path / "ds"], tmp_path / "ds" / "dataset.json", "manifest"),
+             (["compose", cap, "--out", tmp_path / "m"], cap / "filenames.txt", "filenames.txt")]
+    for args, culprit, what in cases:
+        line = one_line_error(cli(*args))
+        assert line == f"error: {culprit}: {what} is not UTF-8 text (byte 0xff at offset 0)", (args[0], line)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.toml", "cal.json", "cap", "ds", "ok.npy", "s.json"]

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from msps_render.atomic import atomic_write
-from msps_render.errors import InputError, not_a_dataset
+from msps_render.errors import InputError, not_a_dataset, read_text
 
 MANIFEST = "dataset.json"
 SHARD_DIR = "shards"
@@ -33,8 +33,9 @@ def read_manifest(root: str | Path) -> dict | None:
     p = manifest_path(root)
     if not p.is_file():
         return None
+    text = read_text(p, "manifest")
     try:
-        return json.loads(p.read_text())
+        return json.loads(text)
     except json.JSONDecodeError as e:
         raise InputError(p, f"corrupt manifest ({e})") from None
 

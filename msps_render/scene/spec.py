@@ -21,7 +21,7 @@ from pydantic import Field, field_validator, model_serializer, model_validator
 from msps_render.brdf.families import MATERIAL_KINDS
 from msps_render.scene.textures import TextureSpec
 from msps_render.config_io import FrozenModel, omit_defaults
-from msps_render.errors import InputError, format_validation_error
+from msps_render.errors import InputError, format_validation_error, read_text
 from msps_render.rig import RigSpec
 from msps_render.scene.families import SHAPE_FAMILIES, unknown_family_message
 from msps_render.scene.primitives import PRIMITIVES, unknown_primitive
@@ -262,11 +262,7 @@ class SceneSpec(FrozenModel):
     @classmethod
     def load(cls, path: str | Path) -> "SceneSpec":
         p = Path(path)
-        try:
-            text = p.read_text()
-        except OSError as e:
-            raise InputError(p, f"cannot read scene file ({e.strerror})") from None
-        return cls.from_json(text, str(p))
+        return cls.from_json(read_text(p, "scene file"), str(p))
 
     def summary(self) -> str:
         """One human-readable line per component (for logs and `msps inspect`)."""
