@@ -89,7 +89,6 @@ def test_render_scene_writes_per_light_pngs_and_part_map_and_says_what_it_does(t
     (["render", "demo", "--out", "{t}/d", "--workers", "0"], "--workers"),  # was: rendered in-process
     (["render", "demo", "--out", "{t}/d", "--seed", "-1"], "--seed"),
     (["render", "demo", "--out", "{t}/d", "--recycle-after", "-1"], "--recycle-after"),
-    (["render", "demo", "--out", "{t}/d", "--cores", "0"], "--cores"),
     (["sample-scene", "--seed", "-1", "--out", "{t}/s.json"], "--seed"),  # was a numpy ValueError traceback
     (["render-scene", "{t}/s.json", "--out", "{t}/r", "--threads", "0"], "--threads"),
     (["config", "show", "demo", "--threads", "0"], "--threads"),

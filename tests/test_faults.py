@@ -157,7 +157,7 @@ def _case_files(case: str, tmp: Path) -> tuple[str, str, str]:
                 "nanenv.exr")
     if case == "missing catalogue":
         return (f'[scene.materials]\nmerl_fraction = 0.5\ncatalogue = "{tmp}/nope-catalogue.toml"\n',
-                "cannot read material catalogue", "nope-catalogue.toml")
+                "material catalogue not found", "nope-catalogue.toml")
     if case == "bad MERL table":
         (tmp / "merl").mkdir()
         (tmp / "merl" / "bad.binary").write_bytes(np.array([90, 90, 180], "<i4").tobytes() + b"\0" * 1000)

@@ -32,7 +32,7 @@ def render_cmd(config: str = typer.Argument(..., help="preset name (scenes/NAME.
                                                 help="before rendering, refuse when the shards will not fit "
                                                      "in the free space (estimate: `msps config show --probe`)"),
                partition: Optional[str] = typer.Option(None, help="Slurm: partition (scheduler.slurm.partition)"),
-               cores: Optional[int] = typer.Option(None, min=1, help="Slurm: CPUs per worker job"),
+               cores: Optional[int] = typer.Option(None, help="Slurm: CPUs per worker job"),
                memory: Optional[str] = typer.Option(None, help="Slurm: memory per worker job, e.g. 4GB"),
                walltime: Optional[str] = typer.Option(None, help="Slurm: time limit per job, e.g. 04:00:00"),
                sbatch: List[str] = typer.Option([], "--sbatch", help="Slurm: extra sbatch option (repeatable), "
