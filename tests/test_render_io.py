@@ -202,7 +202,7 @@ def test_cli_bad_inputs_one_line_no_output(tmp_path, shared_data):
     mesh_scene = tmp_path / "mesh.json"
     mesh_scene.write_text(spec.model_copy(update={"shape": ShapeSpec(kind="mesh", path=str(bad_mesh))}).to_json())
     for scene, msg in ((bad_json, "unknown key 'wat'"), (mesh_scene, "broken.obj"),
-                       (tmp_path / "missing.json", "cannot read")):
+                       (tmp_path / "missing.json", "scene file not found")):
         out = tmp_path / f"out-{scene.stem}"
         r = run_cli("render-scene", scene, "--out", out)
         assert r.returncode == 1
