@@ -95,7 +95,25 @@ class Bar:
         return Task(self._p, self._p.add_task(description, total=total))
 
 
-LINE_EVERY_S = float(os.environ.get("MSPS_PROGRESS_EVERY", "15"))  # plain lines at least this often (s) in a log
+LINE_EVERY_S = 15.0  # plain lines at least this often (s) in a log; $MSPS_PROGRESS_EVERY changes it
+
+
+def line_every_s() -> float:
+    """Seconds between plain progress lines: $MSPS_PROGRESS_EVERY (>= 0; 0: every update), else
+    `LINE_EVERY_S`.  Read when a loop starts, not at import: a bad value is one line naming the variable
+    (it was a ValueError traceback at import, which broke every command)."""
+    from msps_render.errors import InputError
+
+    v = os.environ.get("MSPS_PROGRESS_EVERY", "").strip()
+    if not v:
+        return LINE_EVERY_S
+    try:
+        s = float(v)
+    except ValueError:
+        s = -1.0
+    if not s >= 0:  # also NaN
+        raise InputError("MSPS_PROGRESS_EVERY", f"must be a number of seconds >= 0, got {v!r}")
+    return s
 
 
 def _duration(s: float) -> str:
@@ -109,11 +127,12 @@ class LineTicker:
     the run moving, not only its end."""
 
     def __init__(self, name: str, total: int | None, enabled: bool = True, unit: str = "it", start: int = 0,
-                 every_s: float = LINE_EVERY_S, stream=None, budget_s: float | None = None):
+                 every_s: float | None = None, stream=None, budget_s: float | None = None):
         import sys
         import time
 
-        self.name, self.total, self.unit, self.every_s = name, total, unit, every_s
+        self.name, self.total, self.unit = name, total, unit
+        self.every_s = every_s if every_s is not None else line_every_s()
         self.budget_s = budget_s  # a time budget that may end the loop before `total`
         self.enabled, self._time = enabled, time.perf_counter
         self.stream = stream or sys.stderr

@@ -327,12 +327,18 @@ def test_local_workers_share_the_cores(monkeypatch):
     assert worker_threads(None, 2) is None  # the environment decides (render.variant.activate reads it)
 
 
-@pytest.mark.parametrize("value", ["abc", "0", "-2"])
-def test_a_bad_thread_count_in_the_environment_is_one_line_before_any_work(value, tmp_path):
-    """MSPS_THREADS that is not a whole number >= 1: one line naming it, exit 1, no --out created (was a
-    traceback from int() or drjit, raised in a worker after dataset.json was written)."""
+@pytest.mark.parametrize("var, value", [("MSPS_THREADS", "abc"), ("MSPS_THREADS", "0"), ("MSPS_THREADS", "-2"),
+                                        ("MSPS_PROGRESS_EVERY", "abc"), ("MSPS_PROGRESS_EVERY", "-1"),
+                                        ("MSPS_PROGRESS_EVERY", "nan")])
+def test_a_bad_setting_in_the_environment_is_one_line_before_any_work(var, value, tmp_path):
+    """MSPS_THREADS that is not a whole number >= 1, MSPS_PROGRESS_EVERY that is not seconds >= 0: one line
+    naming it, exit 1, no --out created.  Was a traceback: MSPS_THREADS's from int() or drjit, raised in a
+    worker after dataset.json was written; MSPS_PROGRESS_EVERY's at import, breaking every command."""
     from cli_helpers import cli, one_line_error
 
-    r = cli("render", "demo", "--out", tmp_path / "ds", "--quiet", "--workers", "2", env_extra={"MSPS_THREADS": value})
-    assert one_line_error(r) == f"error: MSPS_THREADS: must be a whole number >= 1 (render threads), got {value!r}"
-    assert not (tmp_path / "ds").exists()
+    why = {"MSPS_THREADS": "a whole number >= 1 (render threads)", "MSPS_PROGRESS_EVERY": "a number of seconds >= 0"}
+    for args in (("render", "demo", "--out", tmp_path / "ds", "--quiet", "--workers", "2"),
+                 ("train", "cpu", "--data", tmp_path / "ds", "--val", tmp_path / "ds", "--out", tmp_path / "run")):
+        line = one_line_error(cli(*args, env_extra={var: value}))
+        assert line == f"error: {var}: must be {why[var]}, got {value!r}", line
+    assert list(tmp_path.iterdir()) == []

@@ -59,6 +59,16 @@ def _write_fault_line(e: BaseException, code: int, kw: dict) -> str:
     return line
 
 
+def check_environment() -> None:
+    """Settings read from the environment (MSPS_THREADS, MSPS_PROGRESS_EVERY), checked before a command
+    does any work: a bad one is one line naming it, with nothing written."""
+    from msps_render.progress import line_every_s
+    from msps_render.render.variant import env_threads
+
+    env_threads()
+    line_every_s()
+
+
 def clean_errors(fn):
     """Decorator: bad input or an unusable path -> one line + exit 1 (no traceback); a write fault
     (disk full, quota, read-only, file-size limit: `errors.write_fault`) likewise, naming the file;
@@ -67,6 +77,7 @@ def clean_errors(fn):
     @functools.wraps(fn)
     def wrapper(*a, **kw):
         try:
+            check_environment()
             return fn(*a, **kw)
         except (InputError, WorkerDied, OSError, RuntimeError) as e:
             code = write_fault(e)
