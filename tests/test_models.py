@@ -585,3 +585,20 @@ def test_smoke_run_reads_well_and_its_checkpoint_evaluates(tiny_dataset, tmp_pat
                         str(tmp_path / "rep"), "--checkpoint", ck], capture_output=True, text=True)
     assert e.returncode == 0, e.stderr
     assert (tmp_path / "rep" / "metrics.json").is_file()
+
+
+def test_the_suggested_eval_command_can_be_pasted_with_spaces_in_the_path(tmp_path):
+    """The summary's `msps eval ...` line quotes the checkpoint path, so a run folder with a space (or
+    quotes) pastes into a shell as one argument."""
+    import shlex
+
+    from msps_render.models.train import summary_lines
+
+    run = tmp_path / "my run's 1"
+    run.mkdir()
+    (run / "best.pt").write_bytes(b"")
+    r = {"preset": "cpu", "n_params": 1, "device": "cpu", "steps": 2, "epochs": 0.5, "patches_seen": 8,
+         "corpus_patches": 16, "elapsed_s": 60.0, "validation_s": 6.0, "best_val_mae_deg": 12.0, "out": str(run)}
+    line = next(l for l in summary_lines(r) if l.startswith("evaluate: "))
+    argv = shlex.split(line[len("evaluate: "):])
+    assert argv[:2] == ["msps", "eval"] and argv[argv.index("--checkpoint") + 1] == str(run / "best.pt")

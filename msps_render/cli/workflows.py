@@ -2,6 +2,7 @@
 (real per-light captures in)."""
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 from typing import Optional
 
@@ -72,7 +73,8 @@ def compose_cmd(capture: Path = typer.Argument(..., help="DiLiGenT-style folder:
         for w in r["warnings"]:
             typer.echo(f"warning: {w}", err=True)
         dev = ", ".join(f"{n} ({d:.1f} deg off)" for n, d in zip(r["images"], r["deviation_deg"]))
-        typer.echo(f"composed {dev} -> {out}/image.exr; predict with: msps predict {out}/image.exr "
-                   f"--mask {out}/mask.png --calibration {out}/calibration.json --out {out}/normals")
+        q = {n: shlex.quote(str(out / n)) for n in ("image.exr", "mask.png", "calibration.json", "normals")}
+        typer.echo(f"composed {dev} -> {out}/image.exr; predict with: msps predict "
+                   f"{q['image.exr']} --mask {q['mask.png']} --calibration {q['calibration.json']} --out {q['normals']}")
 
     _run(go)

@@ -8,6 +8,7 @@ unreadable or (deep check) fails its checksum or contents.  Each problem names i
 """
 from __future__ import annotations
 
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -99,7 +100,7 @@ class DatasetStatus:
         out = [f"{'BAD' if n in self.damaged or self.complete else 'INCOMPLETE'} {at_fault(self.root, n)}: "
                f"{'; '.join(self.problems[n])}" for n in names[:limit]]
         if limit is not None and len(names) > limit:
-            out.append(f"... and {len(names) - limit} more (`msps verify {self.root}` lists them)")
+            out.append(f"... and {len(names) - limit} more (`msps verify {shlex.quote(str(self.root))}` lists them)")
         return out
 
 

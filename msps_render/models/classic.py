@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import shlex
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -462,7 +463,7 @@ def summary_lines(r: dict) -> list[str]:
             f"best validation error: {r['best_val_mae_deg']:.2f} deg (mean angular error over object pixels, "
             f"all lights of each validation patch)",
             f"checkpoint: {ck}  (resume: --resume; curve: {out / 'metrics.png'})",
-            f"evaluate: msps eval --data TEST_DIR --checkpoint {ck} --out REPORT_DIR"]
+            f"evaluate: msps eval --data TEST_DIR --checkpoint {shlex.quote(str(ck))} --out REPORT_DIR"]
 
 
 def export(src: str | Path, dst: str | Path) -> Path:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import shlex
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -443,8 +444,8 @@ def summary_lines(r: dict) -> list[str]:
             f"best validation error: {r['best_val_mae_deg']:.2f} deg (mean angular error over object pixels)",
             f"checkpoint: {best if best.is_file() else out / 'last.pt'}  (resume: --resume; curve: "
             f"{out / 'metrics.png'})",
-            f"evaluate: msps eval --data TEST_DIR --checkpoint {best if best.is_file() else out / 'last.pt'} "
-            f"--out REPORT_DIR"]
+            f"evaluate: msps eval --data TEST_DIR --checkpoint "
+            f"{shlex.quote(str(best if best.is_file() else out / 'last.pt'))} --out REPORT_DIR"]
 
 
 def plot_metrics(jsonl: Path, png: Path, title: str | None = None) -> Path | None:

@@ -5,6 +5,7 @@ import contextlib
 import copy
 import json
 import os
+import shlex
 import signal
 import threading
 import sys
@@ -360,7 +361,8 @@ def _write_card(out: Path) -> None:
     try:
         write_card(out)
     except Exception as e:  # noqa: BLE001 - never fail a finished render over its summary picture
-        print(f"warning: dataset card not written ({type(e).__name__}: {e}); retry with `msps card {out}`",
+        print(f"warning: dataset card not written ({type(e).__name__}: {e}); retry with "
+              f"`msps card {shlex.quote(str(out))}`",
               file=sys.stderr)
 
 
