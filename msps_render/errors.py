@@ -73,6 +73,21 @@ def write_fault(exc: BaseException) -> int | None:
     return None
 
 
+def env_count(name: str, what: str) -> int | None:
+    """A count from environment variable `name` (a whole number >= 1), None when unset or empty; one
+    `InputError` naming the variable otherwise (`what` says what it counts)."""
+    v = os.environ.get(name, "").strip()
+    if not v:
+        return None
+    try:
+        n = int(v)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise InputError(name, f"must be a whole number >= 1 ({what}), got {v!r}")
+    return n
+
+
 def read_text(path: str | Path, what: str) -> str:
     """A user's text file (UTF-8), or one `InputError` naming it: not found, unreadable, or not text (a binary
     file passed by mistake was a UnicodeDecodeError traceback)."""

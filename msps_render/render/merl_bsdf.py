@@ -39,7 +39,7 @@ import numpy as np
 from msps_render.brdf import merl
 from msps_render.brdf.analytic import cache_dir, cache_writes
 from msps_render.brdf.library import resolve_table
-from msps_render.errors import InputError
+from msps_render.errors import InputError, env_count
 from msps_render.render.variant import register_plugin
 
 log = logging.getLogger(__name__)
@@ -91,16 +91,8 @@ _LOBES: dict[str, tuple[float, float]] = {}  # path -> (alpha, weight): two floa
 
 def table_cache_size() -> int:
     """Tables kept per process: $MSPS_TABLE_CACHE (>= 1), else `DEFAULT_TABLE_CACHE`."""
-    v = os.environ.get(TABLE_CACHE_ENV, "").strip()
-    if not v:
-        return DEFAULT_TABLE_CACHE
-    try:
-        n = int(v)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise InputError(TABLE_CACHE_ENV, f"must be a whole number >= 1 (tables kept per process), got {v!r}")
-    return n
+    n = env_count(TABLE_CACHE_ENV, "tables kept per process")
+    return DEFAULT_TABLE_CACHE if n is None else n
 
 
 class CacheInfo(NamedTuple):

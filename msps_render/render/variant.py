@@ -16,7 +16,7 @@ import sys
 import warnings
 from functools import lru_cache
 
-from msps_render.errors import InputError, closest
+from msps_render.errors import InputError, closest, env_count
 
 # fastest first; the last entry always works (no JIT)
 PREFERRED = {"rgb": ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb"),
@@ -175,18 +175,8 @@ THREADS_ENV = "MSPS_THREADS"
 
 
 def env_threads() -> int | None:
-    """Render threads from $MSPS_THREADS, None when unset or empty; one `InputError` naming the variable when
-    it is not a whole number >= 1 (was a traceback from `int()` or from drjit)."""
-    v = os.environ.get(THREADS_ENV, "").strip()
-    if not v:
-        return None
-    try:
-        n = int(v)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise InputError(THREADS_ENV, f"must be a whole number >= 1 (render threads), got {v!r}")
-    return n
+    """Render threads from $MSPS_THREADS, None when unset (a bad value was a traceback from `int()` or drjit)."""
+    return env_count(THREADS_ENV, "render threads")
 
 
 def activate(variant: str, threads: int | None = None):
