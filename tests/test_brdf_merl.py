@@ -275,3 +275,37 @@ def test_fit_sampling_lobe_recovers_alpha():
     assert 0.06 < alpha < 0.1 and weight > 0.1
     _, w_diffuse = merl.fit_sampling_lobe(analytic.make_table("lambert", {"albedo": [0.8] * 3}))
     assert w_diffuse == 0.0
+
+
+def test_sampling_lobe_is_fit_once_per_cached_table_and_kept_beside_it(tmp_path, monkeypatch):
+    """A worker process used to fit every measured table's sampling lobe before its first frames (5-20 ms
+    each, 80 tables for the shipped catalogue).  The fit is now stored beside the table in the cache: a
+    new process reads the same floats (so pixels do not change), a re-baked table is fit again, and a
+    table outside msps's cache gets no file beside it."""
+    import json
+    import os
+
+    from msps_render.render import merl_bsdf
+
+    monkeypatch.setenv("MSPS_CACHE_DIR", str(tmp_path / "cache"))
+    src = analytic.generated_table("ggx", {"kd": [0.05] * 3, "ks": [1.0] * 3, "alpha": 0.08, "f0": 0.04})
+    baked = merl_bsdf._baked_file(str(src))
+    side = baked + merl_bsdf.LOBE_SUFFIX
+    fits = []
+    real_fit = merl.fit_sampling_lobe
+    monkeypatch.setattr(merl, "fit_sampling_lobe", lambda rgb: fits.append(1) or real_fit(rgb))
+    monkeypatch.setattr(merl_bsdf, "_LOBES", {})
+    _, alpha, weight = merl_bsdf._load_table(str(src))
+    assert len(fits) == 1 and (alpha, weight) == real_fit(merl.read_table(baked).rgb)
+    assert json.loads(open(side).read())["alpha"] == alpha  # the fit's own float, exactly
+    monkeypatch.setattr(merl_bsdf, "_LOBES", {})  # a new process
+    assert merl_bsdf._load_table(str(src))[1:] == (alpha, weight) and len(fits) == 1  # read, not fit
+    st = os.stat(baked)
+    os.utime(baked, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # the table file replaced
+    monkeypatch.setattr(merl_bsdf, "_LOBES", {})
+    assert merl_bsdf._load_table(str(src))[1:] == (alpha, weight) and len(fits) == 2
+    assert json.loads(open(side).read())["mtime_ns"] == st.st_mtime_ns + 10**9
+    own = merl.write_baked(tmp_path / "mine.npy", merl.read_table(baked).rgb)  # a user's own baked table
+    assert merl_bsdf._load_table(str(own))[1:] == (alpha, weight) and len(fits) == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cache", "mine.npy"]
+    assert not [p for p in (tmp_path / "cache" / "brdf").iterdir() if p.name.endswith(".tmp")]

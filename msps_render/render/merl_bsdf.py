@@ -79,11 +79,47 @@ def _baked_file(path: str) -> str:
 
 def _load_table(path: str) -> tuple[np.ndarray, float, float]:
     """(memory-mapped interleaved (N, 3) float32 table, lobe alpha, lobe weight) of a table file."""
-    inter = merl.map_baked(_baked_file(path))
+    baked = _baked_file(path)
+    inter = merl.map_baked(baked)
     if path not in _LOBES:  # a pure function of the file: reloading an evicted table skips the fit
-        _LOBES[path] = merl.fit_sampling_lobe(inter.T.reshape(3, *merl.DIMS))
+        _LOBES[path] = _stored_lobe(baked, inter)
     alpha, weight = _LOBES[path]
     return inter, alpha, weight
+
+
+LOBE_SUFFIX = ".lobe.json"
+
+
+def _stored_lobe(baked: str, inter: np.ndarray) -> tuple[float, float]:
+    """The sampling lobe (`merl.fit_sampling_lobe`) of a baked table, kept beside it in the table cache.
+
+    Why: the fit reads the table's retro-reflection slice (pages all over its 16.7 MiB) and solves 64
+    small least squares, 5-20 ms; every worker process paid it once per measured material (80 for the
+    shipped catalogue) before its first frames.  The stored values are the fit's own floats (JSON
+    round-trips them exactly), so pixels do not change; they count only for the table file of the same
+    size and modification time.  Only tables in msps's own cache get one (no file is added beside a
+    table a user gave), and a sidecar that cannot be written is skipped: the fit is kept in memory."""
+    import json
+
+    from msps_render.atomic import write_bytes
+    from msps_render.errors import WriteFailed
+
+    st = os.stat(baked)
+    side = Path(baked + LOBE_SUFFIX)
+    stamp = {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    try:
+        d = json.loads(side.read_text(encoding="utf-8"))
+        if {k: d.get(k) for k in stamp} == stamp:
+            return float(d["alpha"]), float(d["weight"])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        pass  # none yet, or unreadable: fit again
+    alpha, weight = merl.fit_sampling_lobe(inter.T.reshape(3, *merl.DIMS))
+    if side.parent == cache_dir():
+        try:
+            write_bytes(side, json.dumps(dict(stamp, alpha=alpha, weight=weight)).encode(), unique=True)  # workers race
+        except WriteFailed as e:  # a full cache disk: the table itself was written, this is only a saving
+            log.debug("sampling lobe of %s not stored (%s)", baked, e)
+    return alpha, weight
 
 
 _LOBES: dict[str, tuple[float, float]] = {}  # path -> (alpha, weight): two floats per table, unbounded
