@@ -292,7 +292,7 @@ def test_sampling_lobe_is_fit_once_per_cached_table_and_kept_beside_it(tmp_path,
     baked = merl_bsdf._baked_file(str(src))
     side = baked + merl_bsdf.LOBE_SUFFIX
     fits = []
-    real_fit = merl.fit_sampling_lobe
+    real_fit, real_write = merl.fit_sampling_lobe, merl_bsdf.write_bytes
     monkeypatch.setattr(merl, "fit_sampling_lobe", lambda rgb: fits.append(1) or real_fit(rgb))
     monkeypatch.setattr(merl_bsdf, "_LOBES", {})
     _, alpha, weight = merl_bsdf._load_table(str(src))
@@ -305,7 +305,20 @@ def test_sampling_lobe_is_fit_once_per_cached_table_and_kept_beside_it(tmp_path,
     monkeypatch.setattr(merl_bsdf, "_LOBES", {})
     assert merl_bsdf._load_table(str(src))[1:] == (alpha, weight) and len(fits) == 2
     assert json.loads(open(side).read())["mtime_ns"] == st.st_mtime_ns + 10**9
+    open(side, "w").write('{"size": 1, "alpha": ')  # a damaged file (a crash mid-write leaves none: atomic)
+    monkeypatch.setattr(merl_bsdf, "_LOBES", {})
+    assert merl_bsdf._load_table(str(src))[1:] == (alpha, weight) and len(fits) == 3
+    assert json.loads(open(side).read())["alpha"] == alpha  # rewritten
+    os.remove(side)  # a full cache disk: the sidecar is skipped, the render goes on with the fit
+
+    def full(path, *a, **k):
+        raise merl_bsdf.WriteFailed(path, 28)
+
+    monkeypatch.setattr(merl_bsdf, "write_bytes", full)
+    monkeypatch.setattr(merl_bsdf, "_LOBES", {})
+    assert merl_bsdf._load_table(str(src))[1:] == (alpha, weight) and len(fits) == 4 and not os.path.exists(side)
+    monkeypatch.setattr(merl_bsdf, "write_bytes", real_write)
     own = merl.write_baked(tmp_path / "mine.npy", merl.read_table(baked).rgb)  # a user's own baked table
-    assert merl_bsdf._load_table(str(own))[1:] == (alpha, weight) and len(fits) == 3
+    assert merl_bsdf._load_table(str(own))[1:] == (alpha, weight) and len(fits) == 5
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cache", "mine.npy"]
     assert not [p for p in (tmp_path / "cache" / "brdf").iterdir() if p.name.endswith(".tmp")]

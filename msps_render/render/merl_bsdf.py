@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import json
 import logging
 import math
 import os
@@ -36,10 +37,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from msps_render.atomic import write_bytes
 from msps_render.brdf import merl
 from msps_render.brdf.analytic import cache_dir, cache_writes
 from msps_render.brdf.library import resolve_table
-from msps_render.errors import InputError, env_count
+from msps_render.errors import InputError, WriteFailed, env_count
 from msps_render.render.variant import register_plugin
 
 log = logging.getLogger(__name__)
@@ -99,11 +101,6 @@ def _stored_lobe(baked: str, inter: np.ndarray) -> tuple[float, float]:
     round-trips them exactly), so pixels do not change; they count only for the table file of the same
     size and modification time.  Only tables in msps's own cache get one (no file is added beside a
     table a user gave), and a sidecar that cannot be written is skipped: the fit is kept in memory."""
-    import json
-
-    from msps_render.atomic import write_bytes
-    from msps_render.errors import WriteFailed
-
     st = os.stat(baked)
     side = Path(baked + LOBE_SUFFIX)
     stamp = {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
