@@ -146,7 +146,8 @@ thr() {  # thr NAME PRESET STEPS [--set ...]
     --set train.max_steps=$steps --set train.val_every=$((steps/2)) --set train.val_max_patches=256 \
     --set train.cache=true --set train.num_workers=0 --set train.shuffle_window=0 "$@"
   smi_stop thr-$name
-  python3 -c "import json;r=[json.loads(l) for l in open('$W/thr/$name/metrics.jsonl')];print('throughput:$name',r[-1]['patches_per_s'])" >>$OUT/phases.tsv 2>&1
+  python3 -c "import json;r=[json.loads(l) for l in open('$W/thr/$name/metrics.jsonl')];print('throughput:$name',r[-1]['patches_per_s'])" >>$OUT/phases.tsv 2>>$LOG \
+    || printf 'throughput:%s\tnone\n' "$name" >>$OUT/phases.tsv
 }
 if want thr; then
 thr cpu-b24 cpu 400 --set train.batch_size=24

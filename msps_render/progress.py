@@ -121,13 +121,24 @@ def _duration(s: float) -> str:
     return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
 
 
+def startup_line(name: str, text: str, enabled: bool = True, stream=None) -> None:
+    """One plain line (`name: text`) of what a command does before its loop starts, on a terminal and in a
+    log alike.  Why: reading and verifying a corpus or starting a device can take longer than the 15 s
+    between progress lines, and a command that says nothing for that long looks hung."""
+    import sys
+
+    if enabled:
+        print(f"{name}: {text}", file=stream or sys.stderr, flush=True)
+
+
 class LineTicker:
     """Progress of one long loop: a tqdm bar on a terminal; plain lines (`name: done/total unit, rate, ETA,
     note`) every `every_s` seconds on stderr when it is a file (nohup, Slurm, CI logs), so a log shows
-    the run moving, not only its end."""
+    the run moving, not only its end.  `first_line`: also a line at the loop's first unit (how long the
+    first one took: a training's first step includes the device's warm-up)."""
 
     def __init__(self, name: str, total: int | None, enabled: bool = True, unit: str = "it", start: int = 0,
-                 every_s: float | None = None, stream=None, budget_s: float | None = None):
+                 every_s: float | None = None, stream=None, budget_s: float | None = None, first_line: bool = False):
         import sys
         import time
 
@@ -140,6 +151,7 @@ class LineTicker:
         self.t0 = self._last = self._time()
         self._note = ""
         self._bar = None
+        self._first = first_line
         if enabled and self.stream.isatty():
             from tqdm import tqdm
 
@@ -164,7 +176,8 @@ class LineTicker:
             self.n = n
             return
         self.n = n
-        if self._time() - self._last >= self.every_s:
+        if self._time() - self._last >= self.every_s or (self._first and n > self.n0):
+            self._first = False
             self._last = self._time()
             print(self.line(), file=self.stream, flush=True)
 

@@ -55,6 +55,21 @@ def test_train_writes_lines_before_the_end(tiny, tmp_path):
     assert (1, 3) in lines and (3, 3) in lines, r.stderr[-1500:]
 
 
+def test_train_says_what_it_does_before_its_first_step(tiny, tmp_path):
+    """With a real log's 15 s between lines, a short run still shows its start: opening (and verifying) the
+    corpus, what it holds and on which device, and the first step as soon as it is done -- the start of a
+    run on a GPU node (corpus check, device warm-up) once left a log empty for 35 s."""
+    data, _ = tiny
+    r = cli("train", "cpu", "--data", data, "--val", data, "--out", tmp_path / "run", "--set", "train.max_steps=3",
+            "--set", "train.val_max_patches=16", "--set", "train.batch_size=4", "--set", "train.cache=true")
+    assert r.returncode == 0, r.stderr[-2000:]
+    lines = [l for l in r.stderr.splitlines() if l.startswith("train: ")]
+    assert lines[0] == "train: opening the corpus (verifying every shard, decoding it into memory)", lines
+    assert re.fullmatch(r"train: [\d,]+ training patches in 3 shards \(in memory\), [\d,]+ validation patches: "
+                        r"[\d.]+ s; cpu on cpu \(CPU\), float32", lines[1]), lines
+    assert progress_lines("\n".join(lines[2:]), "train")[:1] == [(1, 3)], lines  # the first step, at once
+
+
 @pytest.mark.parametrize("lights", [None, "all"])
 def test_bench_real_writes_lines_before_the_end(tmp_path, lights):
     from msps_render.testing import write_sphere_capture

@@ -283,11 +283,13 @@ def train_classic(cfg: ClassicConfig, data, val, out, resume: bool = False, prog
     """Train the classic network on rig shards; checkpoints and metrics in `out`; returns the summary."""
     from msps_render.atomic import AppendLog, write_text
     from msps_render.models.train import data_hash, plot_metrics
-    from msps_render.progress import LineTicker
+    from msps_render.progress import LineTicker, startup_line
 
     t = cfg.train
     out = Path(out)
     torch.manual_seed(t.seed)
+    t_open = time.perf_counter()
+    startup_line("train", "opening the corpus and reading the validation patches", progress)
     train_data = RigPatchData(data, t.batch_size, t.lights_per_sample, t.seed, t.shuffle_window)
     val_data = RigPatchData(val, 16, None, 1234, 1)
     val_batches, seen = [], 0
@@ -303,6 +305,8 @@ def train_classic(cfg: ClassicConfig, data, val, out, resume: bool = False, prog
         raise InputError(val, f"the data has {C} camera channel(s), the preset's network takes {cfg.net.channels} "
                               f"(set net.channels = {C})")
     dev = _device(device)
+    startup_line("train", f"{train_data.n_patches:,} training patches, {seen:,} validation patches: "
+                          f"{time.perf_counter() - t_open:.1f} s; {cfg.preset} on {dev}", progress)
     val_batches = [_to(b, dev) for b in val_batches]
     model = ClassicNet(cfg.net_config()).to(dev)
     opt = torch.optim.Adam(model.parameters(), t.lr)
@@ -329,7 +333,7 @@ def train_classic(cfg: ClassicConfig, data, val, out, resume: bool = False, prog
                                              "state": {k: v for k, v in st.__dict__.items() if k != "history"},
                                              "data_hash": dhash, "n_params": n_params, "val_mae_deg": v})
 
-    ticker = LineTicker("train", planned, enabled=progress, unit="step", start=st.step,
+    ticker = LineTicker("train", planned, enabled=progress, unit="step", start=st.step, first_line=True,
                         budget_s=budget - st.elapsed if budget < float("inf") else None)
     done = st.step >= t.max_steps
     losses, window_t, window_n, last_val = [], time.perf_counter(), 0, time.perf_counter()
