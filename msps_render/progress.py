@@ -121,21 +121,63 @@ def _duration(s: float) -> str:
     return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
 
 
-def startup_line(name: str, text: str, enabled: bool = True, stream=None) -> None:
-    """One plain line (`name: text`) of what a command does before its loop starts, on a terminal and in a
-    log alike.  Why: reading and verifying a corpus or starting a device can take longer than the 15 s
-    between progress lines, and a command that says nothing for that long looks hung."""
-    import sys
+STARTUP_NOTICE_S = 5.0  # a start-up stage (or a first step) longer than this says so (0 with MSPS_PROGRESS_EVERY=0)
 
-    if enabled:
-        print(f"{name}: {text}", file=stream or sys.stderr, flush=True)
+
+def startup_notice_s() -> float:
+    return 0.0 if line_every_s() == 0 else STARTUP_NOTICE_S
+
+
+class StartupStage:
+    """What a command does before its loop starts, as plain lines on a terminal and in a log alike: `name:
+    text` once the stage has lasted `startup_notice_s()`, then, when it ends, `name: done` (set `.done` to
+    say what came of it) with its seconds.  Why: reading and verifying a corpus or starting a device can
+    take longer than the 15 s between progress lines, and a command that says nothing that long looks
+    hung.  A short stage prints nothing, so a run that fails at once still ends on its one error line."""
+
+    def __init__(self, name: str, text: str, enabled: bool = True, stream=None):
+        import sys
+
+        self.name, self.text, self.enabled = name, text, enabled
+        self.stream = stream or sys.stderr
+        self.done = "done"
+        self._said = False
+        self._timer = None
+
+    def _say(self) -> None:
+        self._said = True
+        print(f"{self.name}: {self.text}", file=self.stream, flush=True)
+
+    def __enter__(self) -> "StartupStage":
+        import threading
+        import time
+
+        self._t0 = time.perf_counter()
+        if self.enabled:
+            wait = startup_notice_s()
+            if wait == 0:
+                self._say()
+            else:
+                self._timer = threading.Timer(wait, self._say)
+                self._timer.daemon = True
+                self._timer.start()
+        return self
+
+    def __exit__(self, exc_type, *exc) -> None:
+        import time
+
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer.join()
+        if self._said and exc_type is None:
+            print(f"{self.name}: {self.done} ({time.perf_counter() - self._t0:.1f} s)", file=self.stream, flush=True)
 
 
 class LineTicker:
     """Progress of one long loop: a tqdm bar on a terminal; plain lines (`name: done/total unit, rate, ETA,
     note`) every `every_s` seconds on stderr when it is a file (nohup, Slurm, CI logs), so a log shows
-    the run moving, not only its end.  `first_line`: also a line at the loop's first unit (how long the
-    first one took: a training's first step includes the device's warm-up)."""
+    the run moving, not only its end.  `first_line`: also a line at the loop's first unit when it took
+    longer than `startup_notice_s()` (a training's first step includes the device's warm-up)."""
 
     def __init__(self, name: str, total: int | None, enabled: bool = True, unit: str = "it", start: int = 0,
                  every_s: float | None = None, stream=None, budget_s: float | None = None, first_line: bool = False):
@@ -176,8 +218,11 @@ class LineTicker:
             self.n = n
             return
         self.n = n
-        if self._time() - self._last >= self.every_s or (self._first and n > self.n0):
+        first = self._first and n > self.n0
+        if first:
             self._first = False
+            first = self._time() - self.t0 >= startup_notice_s()
+        if first or self._time() - self._last >= self.every_s:
             self._last = self._time()
             print(self.line(), file=self.stream, flush=True)
 

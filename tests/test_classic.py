@@ -86,14 +86,15 @@ def test_train_eval_bench_real_loop(rig_data, tmp_path):
 
     run = tmp_path / "run"
     r = cli("train", "classic-cpu", "--data", rig_data / "train", "--val", rig_data / "val", "--out", run,
-            "--set", "train.max_steps=4", "--set", "train.batch_size=4", "--set", "train.val_max_patches=16")
+            "--set", "train.max_steps=4", "--set", "train.batch_size=4", "--set", "train.val_max_patches=16",
+            env_extra={"MSPS_PROGRESS_EVERY": "0"})  # every line, start-up stages too, however short
     assert r.returncode == 0, r.stderr[-2000:]
     assert "classic network" in r.stdout and (run / "best.pt").is_file() and (run / "metrics.jsonl").is_file()
-    # what it does before its loop, and its first step, are lines of their own (not after 15 s of silence)
-    assert re.search(r"^train: opening the corpus", r.stderr, re.M), r.stderr[-1000:]
-    assert re.search(r"^train: [\d,]+ training patches, \d+ validation patches: [\d.]+ s; classic-cpu on cpu$",
-                     r.stderr, re.M), r.stderr[-1000:]
-    assert re.search(r"^train: 1/4 steps", r.stderr, re.M), r.stderr[-1000:]
+    lines = [l for l in r.stderr.splitlines() if l.startswith("train: ")]
+    assert lines[0] == "train: opening the corpus and reading the validation patches", lines
+    assert re.fullmatch(r"train: [\d,]+ training patches, \d+ validation patches; classic-cpu on cpu \([\d.]+ s\)",
+                        lines[1]), lines
+    assert lines[2].startswith("train: 1/4 steps"), lines
     # resume: a finished run does no extra step
     r2 = cli("train", "classic-cpu", "--data", rig_data / "train", "--val", rig_data / "val", "--out", run,
              "--set", "train.max_steps=4", "--set", "train.batch_size=4", "--set", "train.val_max_patches=16",

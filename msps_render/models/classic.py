@@ -283,30 +283,28 @@ def train_classic(cfg: ClassicConfig, data, val, out, resume: bool = False, prog
     """Train the classic network on rig shards; checkpoints and metrics in `out`; returns the summary."""
     from msps_render.atomic import AppendLog, write_text
     from msps_render.models.train import data_hash, plot_metrics
-    from msps_render.progress import LineTicker, startup_line
+    from msps_render.progress import LineTicker, StartupStage
 
     t = cfg.train
     out = Path(out)
     torch.manual_seed(t.seed)
-    t_open = time.perf_counter()
-    startup_line("train", "opening the corpus and reading the validation patches", progress)
-    train_data = RigPatchData(data, t.batch_size, t.lights_per_sample, t.seed, t.shuffle_window)
-    val_data = RigPatchData(val, 16, None, 1234, 1)
-    val_batches, seen = [], 0
-    for b in val_data.batches(0):  # read once, all lights
-        val_batches.append(b)
-        seen += len(b["mask"])
-        if seen >= t.val_max_patches:
-            break
+    dev = _device(device)
+    with StartupStage("train", "opening the corpus and reading the validation patches", progress) as stage:
+        train_data = RigPatchData(data, t.batch_size, t.lights_per_sample, t.seed, t.shuffle_window)
+        val_data = RigPatchData(val, 16, None, 1234, 1)
+        val_batches, seen = [], 0
+        for b in val_data.batches(0):  # read once, all lights
+            val_batches.append(b)
+            seen += len(b["mask"])
+            if seen >= t.val_max_patches:
+                break
+        stage.done = f"{train_data.n_patches:,} training patches, {seen:,} validation patches; {cfg.preset} on {dev}"
     if not val_batches:
         raise InputError(val, "validation set has fewer patches than one batch (16)")
     C = int(val_batches[0]["image"].shape[2])
     if C != cfg.net.channels:
         raise InputError(val, f"the data has {C} camera channel(s), the preset's network takes {cfg.net.channels} "
                               f"(set net.channels = {C})")
-    dev = _device(device)
-    startup_line("train", f"{train_data.n_patches:,} training patches, {seen:,} validation patches: "
-                          f"{time.perf_counter() - t_open:.1f} s; {cfg.preset} on {dev}", progress)
     val_batches = [_to(b, dev) for b in val_batches]
     model = ClassicNet(cfg.net_config()).to(dev)
     opt = torch.optim.Adam(model.parameters(), t.lr)

@@ -40,7 +40,7 @@ from msps_render.models.losses import total_loss
 from msps_render.models.metrics import angular_error
 from msps_render.models.net import DualCueNet, count_parameters, rig_matrix, widen_inputs
 from msps_render.models.presets import ModelConfig
-from msps_render.progress import startup_line
+from msps_render.progress import StartupStage
 
 
 def data_hash(root: str | Path | Sequence[str | Path]) -> str:
@@ -396,14 +396,13 @@ def train(cfg: ModelConfig, data: str | Path | Sequence[str | Path], val: str | 
     if t_cfg.freeze_bn and init is None and not resume:  # before reading (maybe caching) any data
         raise InputError("train.freeze_bn", "needs --init: a new network has no BatchNorm statistics to keep")
     accel = resolve_accel(device, t_cfg.precision, t_cfg.channels_last)
-    t_open = time.perf_counter()
     what = ["verifying every shard"] if verify else []
     what += {True: ["decoding it into memory"], "auto": ["decoding it into memory if it fits"]}.get(t_cfg.cache, [])
-    startup_line("train", "opening the corpus" + (f" ({', '.join(what)})" if what else ""), progress)
-    train_ds, val_ds = open_data(data, val, verify, t_cfg.cache)
-    startup_line("train", f"{len(train_ds):,} training patches in {len(train_ds.shards)} shards"
-                          f"{' (in memory)' if train_ds.is_cached else ''}, {len(val_ds):,} validation patches: "
-                          f"{time.perf_counter() - t_open:.1f} s; {cfg.preset} on {accel.describe()}", progress)
+    with StartupStage("train", "opening the corpus" + (f" ({', '.join(what)})" if what else ""), progress) as st:
+        train_ds, val_ds = open_data(data, val, verify, t_cfg.cache)
+        st.done = (f"{len(train_ds):,} training patches in {len(train_ds.shards)} shards"
+                   f"{' (in memory)' if train_ds.is_cached else ''}, {len(val_ds):,} validation patches; "
+                   f"{cfg.preset} on {accel.describe()}")
     model, opt = build_model(cfg, accel)
     run = Run(cfg, out, model, opt, data_hash(data), train_lights=training_lights(data))
     start_run(run, resume, init)
