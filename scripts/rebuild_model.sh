@@ -5,7 +5,7 @@
 # reports are kept.  Run from the repository root after `bash scripts/setup.sh`; the checks need the
 # third-party test meshes (MSPS_TEST_DATA, default ../shared/data).
 # Usage: bash scripts/rebuild_model.sh [DATA_DIR] [RUN_DIR]
-#        bash scripts/rebuild_model.sh classic [DATA_DIR] [RUN_DIR]   # models/classic-cpu.pt instead (~2 h 20 min)
+#        bash scripts/rebuild_model.sh classic [DATA_DIR] [RUN_DIR]   # models/classic-cpu.pt instead (~4 h)
 set -euo pipefail
 CLASSIC=0
 if [ "${1:-}" = classic ]; then CLASSIC=1; shift; fi
@@ -17,10 +17,12 @@ export MSPS_TEST_DATA=${MSPS_TEST_DATA:-../shared/data}
 R="--workers 2 --resume --quiet"
 
 if [ "$CLASSIC" = 1 ]; then
-  # The classic (any-light) network, trained on msps renders only (docs/history.md stages 15-16):
+  # The classic (any-light) network, trained on msps renders only (docs/history.md stages 15-17):
   # classic-train (240 shards, 64 white hemisphere lights per frame; ~5-18 min on 2 cores), classic-val,
   # the 30-minute classic-cpu run, then the same run resumed with its budget raised to 120 minutes (the
-  # cosine schedule picks up at 30/120), its best.pt exported, then scored on DiLiGenT with all 96 lights.
+  # cosine schedule picks up at 30/120), then to 220 (at 120/220; the epoch cap raised so that it runs
+  # its time), its best.pt exported, then scored on DiLiGenT with all 96 lights.  A finished part resumed
+  # again trains nothing.
   $MSPS render classic-train --out "$DATA/classic-train" $R
   $MSPS render classic-val --out "$DATA/classic-val" $R
   if [ ! -f "$RUNS/classic-cpu/.first-30-min-done" ]; then
@@ -32,6 +34,8 @@ if [ "$CLASSIC" = 1 ]; then
   fi
   OMP_WAIT_POLICY=PASSIVE $MSPS train classic-cpu --data "$DATA/classic-train" --val "$DATA/classic-val" \
     --out "$RUNS/classic-cpu" --threads 2 --resume --set train.max_minutes=120
+  OMP_WAIT_POLICY=PASSIVE $MSPS train classic-cpu --data "$DATA/classic-train" --val "$DATA/classic-val" \
+    --out "$RUNS/classic-cpu" --threads 2 --resume --set train.max_minutes=220 --set train.epochs=100
   [ -f "$RUNS/classic-cpu.pt" ] || $PY -m msps_render.models.classic export "$RUNS/classic-cpu/best.pt" "$RUNS/classic-cpu.pt"
   D=$MSPS_TEST_DATA/diligent
   rm -rf "$RUNS/classic-diligent"
