@@ -12,7 +12,8 @@
 # every phase of issue 45 item 3 is RGB (renders and training run without colour-science: tested here).
 # then run (carrying .whl and .gpu):  bash benchmarks/gpu_visit.sh   (OUT=dir; BUDGET_S=seconds;
 # BATCH=frames per launch of the batched phases, 16; STEADY_S=130 adds >= 2-minute renders at 1, 4, 16 workers)
-# PHASES=a,b,...: only these (default all): pytest bench-train gpu_check render steady corpora breakdown thr fit
+# PHASES=a,b,...: only these (default all; none: install and probe only): pytest bench-train gpu_check render
+# steady corpora breakdown thr fit
 # (install and probe always run; thr and fit render the corpora they train on).  No phase runs past BUDGET_S:
 # one that would end past it is cut to the budget's end (logged "clamped"), or skipped ("skip" in phases.tsv)
 # when under 30 s are left.  Issue 45 item 3 does not fit one session's 15 device-minutes (a start costs 1-2);
@@ -25,6 +26,11 @@
 #   4. PHASES=pytest,render,breakdown            tests on CUDA, batched launches, per-frame breakdowns
 set -u
 cd "$(dirname "$0")/.."
+GROUPS_KNOWN=",pytest,bench-train,gpu_check,render,steady,corpora,breakdown,thr,fit,none,"
+PHASES=${PHASES:-}
+for g in ${PHASES//,/ }; do  # a misspelt phase would silently run nothing: one line, before any work
+  [[ "$GROUPS_KNOWN" == *",$g,"* ]] || { echo "error: PHASES: unknown phase '$g' (known: ${GROUPS_KNOWN:1:-1})" >&2; exit 1; }
+done
 OUT=${OUT:-/tmp/gpu-out}; mkdir -p "$OUT"
 T0=$(date +%s); BUDGET_S=${BUDGET_S:-560}; S=${SCALE:-1}  # SCALE=8: a CPU dry run of the script
 W=${WORK:-/tmp/msps-gpu}; mkdir -p $W  # corpora and runs (WORK=dir: elsewhere)

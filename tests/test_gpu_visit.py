@@ -13,12 +13,22 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _visit(tmp_path: Path, **env) -> list[list[str]]:
     out = tmp_path / "out"
-    e = {**os.environ, "OUT": str(out), "WORK": str(tmp_path / "work"), "WHL": str(tmp_path / "no-wheels"),
-         "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", **env}
+    e = {**{k: v for k, v in os.environ.items() if k != "PHASES"}, "OUT": str(out), "WORK": str(tmp_path / "work"),
+         "WHL": str(tmp_path / "no-wheels"), "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", **env}
     r = subprocess.run(["bash", str(ROOT / "benchmarks" / "gpu_visit.sh")], env=e, capture_output=True,
                        text=True, timeout=240)
     assert r.returncode == 0, r.stderr[-2000:]
     return [line.split("\t") for line in (out / "phases.tsv").read_text().splitlines()]
+
+
+def test_without_phases_every_phase_is_tried_and_a_spent_budget_skips_them(tmp_path):
+    """No PHASES: all of them (the default); with 20 s of budget every one is skipped, none runs."""
+    rows = _visit(tmp_path, BUDGET_S="20")
+    phases = [r for r in rows if not r[0].startswith(("gpu-busy:", "throughput:"))]  # the phases' own rows
+    names = {r[0] for r in phases}
+    assert {"install", "probe", "pytest", "gpu_check", "render:pt-w1:w1:shards4", "fit"} <= names, names
+    assert not any(n.startswith("render:steady") for n in names)  # only with STEADY_S
+    assert all(r[1] == "skip" for r in phases), phases
 
 
 def test_only_the_phases_asked_for_run(tmp_path):
@@ -41,3 +51,16 @@ def test_no_phase_runs_past_the_budget(tmp_path):
     assert "fit" in skipped and any(n.startswith("render:") for n in skipped)
     assert int(log.rsplit("total ", 1)[1].split()[0]) <= 40 + 5  # the visit's own wall time
     assert not any(r[0].startswith(("train", "steady", "pytest", "gpu_check")) for r in rows)
+
+
+def test_a_misspelt_phase_is_one_line_before_any_work(tmp_path):
+    """`PHASES=stedy` would otherwise run install and probe, then nothing: a visit lost.  One line naming the
+    phase and the known ones, exit 1, no output folder made."""
+    e = {**os.environ, "OUT": str(tmp_path / "out"), "WORK": str(tmp_path / "work"), "PHASES": "steady,stedy"}
+    r = subprocess.run(["bash", str(ROOT / "benchmarks" / "gpu_visit.sh")], env=e, capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 1
+    assert r.stderr.strip().splitlines() == [
+        "error: PHASES: unknown phase 'stedy' (known: pytest,bench-train,gpu_check,render,steady,corpora,"
+        "breakdown,thr,fit,none)"]
+    assert not (tmp_path / "out").exists() and not (tmp_path / "work").exists()

@@ -102,7 +102,7 @@ def test_shipped_model_with_selfcal_and_refine_meets_its_claims(preset, claim, m
 
 def test_shipped_classic_network_scores_on_diligent_what_its_card_says(shared_data, tmp_path):
     """models/classic-cpu.pt on DiLiGenT's four objects with all 96 lights, measured here, against the model
-    card's row (models/README.md; docs/history.md stage 16): each object and the mean to 0.02 deg (the card
+    card's row (models/README.md; docs/history.md stages 16-17): each object and the mean to 0.02 deg (the card
     rounds to 0.01; CPU inference is deterministic), and the ratio of means to least squares.  A new model
     fails until its card follows.  ~15 s."""
     import json
