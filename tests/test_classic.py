@@ -122,6 +122,38 @@ def test_train_eval_bench_real_loop(rig_data, tmp_path):
     assert "not an msps classic-network checkpoint" in one_line_error(r)
 
 
+def test_warm_start_takes_the_checkpoints_weights_and_refuses_mixups_in_one_line(rig_data, tmp_path):
+    """`--init`: a new run starts from a checkpoint's weights (fresh optimizer and schedule), e.g. a shipped
+    model trained further on a larger corpus; what would overwrite, resume nothing or mix networks is one line."""
+    small = ["--set", "train.batch_size=4", "--set", "train.val_max_patches=16"]
+    base = ["--data", rig_data / "train", "--val", rig_data / "val"]
+    a = tmp_path / "a"
+    assert cli("train", "classic-cpu", *base, "--out", a, "--set", "train.max_steps=4", *small).returncode == 0
+    # one step at a vanishing rate: the warm start's weights are the checkpoint's (Adam moves each by ~lr)
+    tiny = ["--set", "train.max_steps=1", "--set", "train.lr=1e-12", *small]
+    r = cli("train", "classic-cpu", *base, "--out", tmp_path / "b", "--init", a / "best.pt", *tiny)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "warm start from best.pt sha1:" in r.stdout, r.stdout
+    r = cli("train", "classic-cpu", *base, "--out", tmp_path / "c", *tiny)  # the same run without --init
+    assert r.returncode == 0, r.stderr[-2000:]
+    wa, wb, wc = (torch.load(f, map_location="cpu", weights_only=True)["model"]
+                  for f in (a / "best.pt", tmp_path / "b" / "last.pt", tmp_path / "c" / "last.pt"))
+    assert max(float((wa[k].float() - wb[k].float()).abs().max()) for k in wa) < 1e-6
+    assert max(float((wa[k].float() - wc[k].float()).abs().max()) for k in wa) > 1e-4  # 4 steps at 1e-3 apart
+    line = one_line_error(cli("train", "classic-gpu", *base, "--out", tmp_path / "d", "--init", a / "best.pt"))
+    assert "best.pt" in line and "different network" in line, line
+    line = one_line_error(cli("train", "classic-cpu", *base, "--out", tmp_path / "e", "--init",
+                              "models/dualcue-cpu.pt"))
+    assert "not an msps classic-network checkpoint" in line, line
+    line = one_line_error(cli("train", "classic-cpu", *base, "--out", a, *tiny))  # a run is never overwritten
+    assert "already holds a training run; use --resume" in line, line
+    line = one_line_error(cli("train", "classic-cpu", *base, "--out", tmp_path / "f", "--resume"))
+    assert "nothing to resume" in line, line
+    line = one_line_error(cli("train", "classic-cpu", *base, "--out", a, "--resume", "--init", a / "best.pt"))
+    assert "--init" in line, line
+    assert not (tmp_path / "d").exists() and not (tmp_path / "e").exists() and not (tmp_path / "f").exists()
+
+
 def test_dual_cue_refuses_rig_shards_in_one_line(rig_data, tmp_path):
     r = cli("train", "cpu", "--data", rig_data / "train", "--val", rig_data / "val", "--out", tmp_path / "r")
     line = one_line_error(r)

@@ -81,17 +81,14 @@ def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAM
     from msps_render.models import classic
 
     if classic.preset_kind(config) == classic.KIND:
-        from msps_render.errors import InputError
         from msps_render.pipeline.outdir import check_writable
 
         check_writable(out, "run")
         if threads:
             torch.set_num_threads(threads)
-        if init is not None:
-            raise InputError("--init", "warm starts are for the dual-cue network; the classic network resumes "
-                                       "its own run (--resume)")
         ccfg = classic.load_classic_config(config, [*(classic.SMOKE if smoke else ()), *set_])
-        r = classic.train_classic(ccfg, data if len(data) > 1 else data[0], val, out, resume=resume, device=device)
+        r = classic.train_classic(ccfg, data if len(data) > 1 else data[0], val, out, resume=resume, device=device,
+                                  init=init)
         typer.echo(json.dumps(r) if json_out else "\n".join(classic.summary_lines(r)))
         return
     from msps_render.models.presets import SMOKE, load_model_config

@@ -12,6 +12,7 @@ lights runs in chunks, so memory is one chunk's features whatever N is.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import shlex
@@ -263,7 +264,24 @@ class RunState:
     batch_in_epoch: int = 0
     elapsed: float = 0.0
     best_val: float = float("inf")
+    init_from: str = ""  # `--init`: the checkpoint whose weights the run started from
     history: list = field(default_factory=list)
+
+
+def _check_start(out: Path, resume: bool, init, cfg: ClassicConfig) -> None:
+    """Refuse, in one line, what would lose or mix runs: resuming nothing, overwriting a run, or a
+    warm start from another network."""
+    last = out / "last.pt"
+    if resume and not last.is_file():
+        raise InputError(last, "nothing to resume (no last.pt)")
+    if resume and init is not None:
+        raise InputError("--init", "a resumed run keeps its own weights; give --init to a new run only")
+    if not resume and last.is_file():
+        raise InputError(out, "already holds a training run; use --resume to continue it")
+    if init is not None:
+        icfg = load(init)[1]
+        if icfg.net != cfg.net:
+            raise InputError(init, f"--init checkpoint has a different network ({icfg.preset}: {icfg.net})")
 
 
 def _device(device: str) -> torch.device:
@@ -279,14 +297,20 @@ def _to(b: dict, dev: torch.device) -> dict:
 
 
 def train_classic(cfg: ClassicConfig, data, val, out, resume: bool = False, progress: bool = True,
-                  device: str = "auto") -> dict:
-    """Train the classic network on rig shards; checkpoints and metrics in `out`; returns the summary."""
+                  device: str = "auto", init: str | Path | None = None) -> dict:
+    """Train the classic network on rig shards; checkpoints and metrics in `out`; returns the summary.
+
+    `resume` continues the run in `out` (its `last.pt`: weights, optimizer, schedule, data position);
+    `init` warm-starts a new run from a checkpoint's weights (same network) with a fresh optimizer and
+    schedule, e.g. to train a shipped model further on a larger corpus, whose run folder is gone.
+    """
     from msps_render.atomic import AppendLog, write_text
     from msps_render.models.train import data_hash, plot_metrics
     from msps_render.progress import LineTicker, StartupStage
 
     t = cfg.train
     out = Path(out)
+    _check_start(out, resume, init, cfg)  # one line before any data is read
     torch.manual_seed(t.seed)
     dev = _device(device)
     with StartupStage("train", "opening the corpus and reading the validation patches", progress) as stage:
@@ -318,6 +342,9 @@ def train_classic(cfg: ClassicConfig, data, val, out, resume: bool = False, prog
         opt.load_state_dict(ck["optimizer"])  # its tensors follow the model's device
         st = RunState(**{k: v for k, v in ck["state"].items() if k in RunState.__dataclass_fields__})
         torch.set_rng_state(ck["torch_rng"])
+    elif init is not None:
+        model.load_state_dict(load(init)[2]["model"])
+        st.init_from = f"{Path(init).name} sha1:{hashlib.sha1(Path(init).read_bytes()).hexdigest()[:12]}"
     out.mkdir(parents=True, exist_ok=True)
     write_text(out / "config.json", json.dumps(cfg.model_dump(mode="json"), indent=1))
     n_params = count_parameters(model)
@@ -388,7 +415,8 @@ def train_classic(cfg: ClassicConfig, data, val, out, resume: bool = False, prog
     return {"steps": st.step, "epochs": round(st.epoch + st.batch_in_epoch / len(train_data), 3),
             "patches_seen": st.step * t.batch_size, "corpus_patches": train_data.n_patches,
             "lights_per_sample": t.lights_per_sample, "best_val_mae_deg": st.best_val, "elapsed_s": elapsed,
-            "validation_s": val_s, "n_params": n_params, "device": str(dev), "preset": cfg.preset, "out": str(out)}
+            "validation_s": val_s, "n_params": n_params, "device": str(dev), "preset": cfg.preset, "out": str(out),
+            **({"init_from": st.init_from} if st.init_from else {})}
 
 
 # ------------------------------------------------------------------ test time
@@ -461,7 +489,8 @@ def summary_lines(r: dict) -> list[str]:
     return [f"trained {r['preset']} (classic network, {r['n_params']:,} parameters) on {r['device']}: "
             f"{r['steps']:,} steps, {r['epochs']:.2f} epochs ({r['patches_seen']:,} patches of a "
             f"{r['corpus_patches']:,}-patch corpus, {r['lights_per_sample']} lights each), "
-            f"{r['elapsed_s'] / 60:.1f} min, {100 * share:.0f} % of it validating",
+            f"{r['elapsed_s'] / 60:.1f} min, {100 * share:.0f} % of it validating"
+            + (f"; warm start from {r['init_from']}" if r.get("init_from") else ""),
             f"best validation error: {r['best_val_mae_deg']:.2f} deg (mean angular error over object pixels, "
             f"all lights of each validation patch)",
             f"checkpoint: {ck}  (resume: --resume; curve: {out / 'metrics.png'})",
