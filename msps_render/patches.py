@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from msps_render.dataset.schema import Patches
+from msps_render.dataset.schema import Patches, all_finite
 
 if TYPE_CHECKING:  # patchify takes a Frame; window_origins (used by predict) needs nothing of it
     from msps_render.frame import Frame
@@ -72,7 +72,7 @@ def _radiance_windows(a: np.ndarray, keep: np.ndarray, size: int, dtype: str, ax
     with np.errstate(over="ignore"):  # refused just below when a kept window holds it
         cast = _as(a, dtype)
     out = cut_windows(cast, keep, size, axis)
-    if cast.dtype == np.float16 and not np.isfinite(cast).all() and not np.isfinite(out).all():
+    if cast.dtype == np.float16 and not all_finite(cast) and not all_finite(out):
         raise ValueError("radiance exceeds float16 range; use image_dtype='float32'")
     return out
 

@@ -102,3 +102,22 @@ def test_per_light_round_trip_and_overflow(tmp_path):
     with pytest.raises(ValueError, match="float16"):
         write_shard(tmp_path / "hot.h5", dataclasses.replace(c, frames=hot))
     assert not (tmp_path / "hot.h5").exists()
+
+
+def test_verify_names_non_finite_and_negative_float16_radiance(tmp_path):
+    """`msps verify` reads float16 patches by their bits: a NaN in one patch, +inf in another and a negative
+    value are each named; -0 is not negative."""
+    import h5py
+
+    write_shard(tmp_path / "s.h5", _content())  # float16 patches (the default)
+    assert verify_shard(tmp_path / "s.h5") == []
+    with h5py.File(tmp_path / "s.h5", "r+") as h:
+        img = h[K.PATCH_IMAGE][()]
+        img[0, 0, 0, 0], img[3, 1, 1, 2], img[2, 0, 0, 1] = -0.0, np.nan, np.inf
+        h[K.PATCH_IMAGE][...] = img
+    assert verify_shard(tmp_path / "s.h5") == ["2 patches with NaN/inf radiance"]
+    with h5py.File(tmp_path / "s.h5", "r+") as h:
+        img[3, 1, 1, 2] = img[2, 0, 0, 1] = 1.0
+        img[4, 2, 2, 0] = -np.float16(6e-8)  # the smallest subnormal, below zero
+        h[K.PATCH_IMAGE][...] = img
+    assert verify_shard(tmp_path / "s.h5") == ["negative radiance"]

@@ -82,3 +82,24 @@ def test_float16_overflow_is_refused_only_inside_a_kept_window():
     frame.image[5, 60] = 1e6  # in the background, which no kept window reaches (x <= 39)
     p = patchify(frame, 20, 10, 0.5, "float16")
     assert np.isfinite(p.image).all() and len(p) == 9
+
+
+def test_float16_value_checks_by_bits_agree_with_numpy_on_every_float16():
+    """`all_finite` / `any_negative` read float16's bits (the writer's and `msps verify`'s checks); every one
+    of the 65,536 float16 values, alone and inside a finite array, gives numpy's answer."""
+    from msps_render.dataset.schema import all_finite, any_negative
+
+    every = np.arange(1 << 16, dtype=np.uint32).astype(np.uint16).view(np.float16)
+    with np.errstate(invalid="ignore"):
+        finite, negative = np.isfinite(every), every < 0
+    base = np.full((3, 4), 0.5, np.float16)
+    mism = []
+    for i in range(0, 1 << 16, 1):
+        a = base.copy()
+        a[1, 2] = every[i]
+        if all_finite(a) != bool(finite[i]) or any_negative(a) != bool(negative[i]):
+            mism.append(hex(i))
+    assert not mism, mism[:10]
+    assert all_finite(np.zeros((0, 3), np.float16)) and not any_negative(np.zeros(0, np.float16))
+    assert not all_finite(np.array([1.0, np.inf])) and any_negative(np.array([0.0, -1e-30]))  # float64 path
+    assert all_finite(every[finite][::-1][::2])  # a strided view is checked like a contiguous one

@@ -19,6 +19,7 @@ from msps_render.dataset import schema as K
 from msps_render.dataset.digest import file_digest
 from msps_render.dataset.manifest import MANIFEST, SHARD_DIR, at_fault, manifest_problems, read_manifest
 from msps_render.dataset.reader import open_shard
+from msps_render.dataset.schema import all_finite, any_negative
 from msps_render.errors import not_a_dataset
 
 
@@ -44,9 +45,10 @@ def verify_shard(path: str | Path, expected_sha256: str | None = None, normal_to
             msk = h[K.PATCH_MASK][()].astype(bool)
             if len(img) != n or len(nrm) != n or len(msk) != n:
                 problems.append(f"patch count mismatch (attr {n}, arrays {len(img)}/{len(nrm)}/{len(msk)})")
-            if not np.isfinite(img).all():
-                problems.append(f"{int((~np.isfinite(img)).any(axis=(1, 2, 3)).sum())} patches with NaN/inf radiance")
-            if (img < 0).any():
+            if not all_finite(img):
+                problems.append(f"{int((~np.isfinite(img)).any(axis=tuple(range(1, img.ndim))).sum())} patches "
+                                "with NaN/inf radiance")
+            if any_negative(img):
                 problems.append("negative radiance")
             if not np.isfinite(nrm).all():
                 problems.append("NaN/inf normals")

@@ -15,7 +15,7 @@ import numpy as np
 from msps_render.atomic import atomic_write
 from msps_render.dataset import schema as K
 from msps_render.dataset.digest import array_digest, file_digest
-from msps_render.dataset.schema import RowBlocks, ShardContent
+from msps_render.dataset.schema import RowBlocks, ShardContent, all_finite
 
 
 def filter_kwargs(compression: str) -> dict:
@@ -67,9 +67,8 @@ def shard_arrays(content: ShardContent, image_dtype: str = "float16", normal_dty
     p = content.patches
     img = p.image.astype(image_dtype, copy=False)  # patches arrive in the storage dtypes (`patchify`)
     blocks = getattr(img, "blocks", [img])
-    if image_dtype == "float16" and len(p) and not all(np.isfinite(b[i:i + 256]).all()
-                                                       for b in blocks for i in range(0, len(b), 256)):
-        raise ValueError("radiance exceeds float16 range; use image_dtype='float32'")  # (checked in slices: no big mask)
+    if image_dtype == "float16" and len(p) and not all(all_finite(b) for b in blocks):
+        raise ValueError("radiance exceeds float16 range; use image_dtype='float32'")
     arrays = {
         K.PATCH_IMAGE: img,
         K.PATCH_NORMAL: p.normal.astype(normal_dtype, copy=False),
@@ -155,7 +154,7 @@ def _rig_arrays(content: ShardContent, arrays: dict, image_dtype: str):
 def _radiance(a: np.ndarray, dtype: str, what: str) -> np.ndarray:
     with np.errstate(over="ignore"):  # overflow is refused just below, with a line that says what to do
         out = a.astype(dtype)
-    if dtype == "float16" and not np.isfinite(out).all():
+    if dtype == "float16" and not all_finite(out):
         raise ValueError(f"{what} radiance exceeds float16 range; use image_dtype='float32'")
     return out
 
