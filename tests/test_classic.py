@@ -154,6 +154,31 @@ def test_warm_start_takes_the_checkpoints_weights_and_refuses_mixups_in_one_line
     assert not (tmp_path / "d").exists() and not (tmp_path / "e").exists() and not (tmp_path / "f").exists()
 
 
+def test_several_corpora_train_as_one_and_other_rig_sizes_are_refused(rig_data, tmp_path):
+    """`--data` repeated: the corpora's patches are one training set (the summary counts both); a corpus of
+    another rig size (6 lights against 8) is refused in one line naming the shard, before any step."""
+    small = ["--val", rig_data / "val", "--set", "train.batch_size=4", "--set", "train.val_max_patches=16",
+             "--set", "train.max_steps=2", "--json"]
+    counts = {}
+    for name in ("train", "val"):
+        r = cli("train", "classic-cpu", "--data", rig_data / name, "--out", tmp_path / name, *small)
+        assert r.returncode == 0, r.stderr[-2000:]
+        counts[name] = json.loads(r.stdout)["corpus_patches"]
+    r = cli("train", "classic-cpu", "--data", rig_data / "train", "--data", rig_data / "val", "--out",
+            tmp_path / "both", *small)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads(r.stdout)["corpus_patches"] == counts["train"] + counts["val"] > counts["train"]
+    with llvm_forced():
+        r = cli("render", "demo-rig", "--out", tmp_path / "six", "--set", "scene.rig.n_lights=6", "--set",
+                "dataset.n_shards=1", "--set", "dataset.frames_per_shard=1", "--set", "scene.camera.width=64",
+                "--set", "scene.camera.height=64", "--set", "dataset.patches.stride=8", "--workers", "1")
+    assert r.returncode == 0, r.stderr[-2000:]
+    line = one_line_error(cli("train", "classic-cpu", "--data", rig_data / "train", "--data", tmp_path / "six",
+                              "--out", tmp_path / "mixed", *small))
+    assert "6 images of 3 channel(s) per patch" in line and "has 8 of 3" in line and "six" in line, line
+    assert not (tmp_path / "mixed").exists()
+
+
 def test_dual_cue_refuses_rig_shards_in_one_line(rig_data, tmp_path):
     r = cli("train", "cpu", "--data", rig_data / "train", "--val", rig_data / "val", "--out", tmp_path / "r")
     line = one_line_error(r)

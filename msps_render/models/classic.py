@@ -19,7 +19,7 @@ import shlex
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, Sequence
 
 import numpy as np
 import torch
@@ -136,16 +136,19 @@ def read_rig_shard(path: Path) -> Shard:
     return Shard(p["image"], p["normal"], p["mask"].astype(bool), dirs, readings)
 
 
-def rig_shard_paths(root: str | Path) -> list[Path]:
+def rig_shard_paths(root: str | Path | Sequence[str | Path]) -> list[Path]:
+    """The shards of one dataset, or of several trained on as one (`--data` repeated), in that order."""
     from msps_render.dataset import read_manifest
 
-    root = Path(root)
-    m = read_manifest(root)
-    if m is None:
-        raise not_a_dataset(root)
-    paths = [root / "shards" / n for n in sorted(m["shards"])]
-    if not paths:
-        raise InputError(root, "dataset has no rendered shard yet")
+    paths = []
+    for r in ([root] if isinstance(root, (str, Path)) else root):
+        r = Path(r)
+        m = read_manifest(r)
+        if m is None:
+            raise not_a_dataset(r)
+        if not m["shards"]:
+            raise InputError(r, "dataset has no rendered shard yet")
+        paths += [r / "shards" / n for n in sorted(m["shards"])]
     return paths
 
 
@@ -174,12 +177,24 @@ class RigPatchData:
         self.n_patches = self._count()
 
     def _count(self) -> int:
+        """Patches in all shards; refuses shards of other rig sizes in one line (a window's shards are
+        cut into batches together, so every patch needs the same number of images and channels)."""
+        from msps_render.dataset import schema as K
         from msps_render.dataset.reader import open_shard
 
-        n = 0
+        n, size = 0, None
         for p in self.paths:
             with open_shard(p) as h:
-                n += int(h.attrs["n_patches"])
+                k = int(h.attrs["n_patches"])
+                here = (int(h.attrs.get(K.ATTR_N_SHOTS, 0)), int(h.attrs.get(K.ATTR_N_CHANNELS, 0)))
+            n += k
+            if k == 0:  # no patch, nothing to cut (its attributes say 0 images)
+                continue
+            if size is None:
+                size, first = here, p
+            elif here != size:
+                raise InputError(p, f"{here[0]} images of {here[1]} channel(s) per patch, but {first} has "
+                                    f"{size[0]} of {size[1]}: train on datasets of one rig size")
         return n
 
     def __len__(self) -> int:
