@@ -140,6 +140,10 @@ def test_warm_start_takes_the_checkpoints_weights_and_refuses_mixups_in_one_line
                   for f in (a / "best.pt", tmp_path / "b" / "last.pt", tmp_path / "c" / "last.pt"))
     assert max(float((wa[k].float() - wb[k].float()).abs().max()) for k in wa) < 1e-6
     assert max(float((wa[k].float() - wc[k].float()).abs().max()) for k in wa) > 1e-4  # 4 steps at 1e-3 apart
+    r = cli("train", "classic-cpu", *base, "--out", tmp_path / "s", "--init", "classic-cpu", *tiny)  # shipped, by name
+    assert r.returncode == 0 and "warm start from classic-cpu.pt sha1:" in r.stdout, r.stdout + r.stderr[-1000:]
+    line = one_line_error(cli("train", "classic-cpu", *base, "--out", tmp_path / "n", "--init", "no-such-model"))
+    assert "no-such-model" in line and "not found" in line, line
     line = one_line_error(cli("train", "classic-gpu", *base, "--out", tmp_path / "d", "--init", a / "best.pt"))
     assert "best.pt" in line and "different network" in line, line
     line = one_line_error(cli("train", "classic-cpu", *base, "--out", tmp_path / "e", "--init",

@@ -66,8 +66,9 @@ def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAM
               val: Path = typer.Option(..., help="validation dataset directory"),
               out: Path = typer.Option(..., help="run directory (checkpoints, metrics)"),
               resume: bool = typer.Option(False, help="continue the run in OUT"),
-              init: Optional[Path] = typer.Option(None, help="warm start: weights of this checkpoint "
-                                                  "(same network), fresh optimizer and schedule"),
+              init: Optional[Path] = typer.Option(None, help="warm start: weights of this checkpoint (a path, "
+                                                  "or a shipped model's name, e.g. classic-cpu; same network), "
+                                                  "fresh optimizer and schedule"),
               set_: List[str] = typer.Option([], "--set", help="override, e.g. train.max_minutes=10"),
               device: str = typer.Option("auto", help="auto (CUDA when usable, else CPU), cpu or cuda"),
               threads: Optional[int] = typer.Option(None, min=1, help="torch CPU threads"),
@@ -80,6 +81,10 @@ def train_cmd(config: str = typer.Argument("cpu", help="model preset (models/NAM
 
     from msps_render.models import classic
 
+    if init is not None:  # a path, or a shipped checkpoint's name (models/NAME.pt, e.g. classic-cpu)
+        from msps_render import resources
+
+        init = resources.find("models", init, ".pt") or init  # not found: the loader says so, naming it
     if classic.preset_kind(config) == classic.KIND:
         from msps_render.pipeline.outdir import check_writable
 
