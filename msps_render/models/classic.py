@@ -12,7 +12,6 @@ lights runs in chunks, so memory is one chunk's features whatever N is.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import shlex
@@ -283,9 +282,9 @@ class RunState:
     history: list = field(default_factory=list)
 
 
-def _check_start(out: Path, resume: bool, init, cfg: ClassicConfig) -> None:
+def _check_start(out: Path, resume: bool, init, cfg: ClassicConfig) -> dict | None:
     """Refuse, in one line, what would lose or mix runs: resuming nothing, overwriting a run, or a
-    warm start from another network."""
+    warm start from another network.  Returns the `init` checkpoint (read once), else None."""
     last = out / "last.pt"
     if resume and not last.is_file():
         raise InputError(last, "nothing to resume (no last.pt)")
@@ -293,10 +292,12 @@ def _check_start(out: Path, resume: bool, init, cfg: ClassicConfig) -> None:
         raise InputError("--init", "a resumed run keeps its own weights; give --init to a new run only")
     if not resume and last.is_file():
         raise InputError(out, "already holds a training run; use --resume to continue it")
-    if init is not None:
-        icfg = load(init)[1]
-        if icfg.net != cfg.net:
-            raise InputError(init, f"--init checkpoint has a different network ({icfg.preset}: {icfg.net})")
+    if init is None:
+        return None
+    _, icfg, ick = load(init)
+    if icfg.net != cfg.net:
+        raise InputError(init, f"--init checkpoint has a different network ({icfg.preset}: {icfg.net})")
+    return ick
 
 
 def _device(device: str) -> torch.device:
@@ -320,12 +321,12 @@ def train_classic(cfg: ClassicConfig, data, val, out, resume: bool = False, prog
     schedule, e.g. to train a shipped model further on a larger corpus, whose run folder is gone.
     """
     from msps_render.atomic import AppendLog, write_text
-    from msps_render.models.train import data_hash, plot_metrics
+    from msps_render.models.train import _sha1, data_hash, plot_metrics
     from msps_render.progress import LineTicker, StartupStage
 
     t = cfg.train
     out = Path(out)
-    _check_start(out, resume, init, cfg)  # one line before any data is read
+    init_ck = _check_start(out, resume, init, cfg)  # one line before any data is read
     torch.manual_seed(t.seed)
     dev = _device(device)
     with StartupStage("train", "opening the corpus and reading the validation patches", progress) as stage:
@@ -357,9 +358,9 @@ def train_classic(cfg: ClassicConfig, data, val, out, resume: bool = False, prog
         opt.load_state_dict(ck["optimizer"])  # its tensors follow the model's device
         st = RunState(**{k: v for k, v in ck["state"].items() if k in RunState.__dataclass_fields__})
         torch.set_rng_state(ck["torch_rng"])
-    elif init is not None:
-        model.load_state_dict(load(init)[2]["model"])
-        st.init_from = f"{Path(init).name} sha1:{hashlib.sha1(Path(init).read_bytes()).hexdigest()[:12]}"
+    elif init_ck is not None:
+        model.load_state_dict(init_ck["model"])
+        st.init_from = f"{Path(init).name} sha1:{_sha1(init)[:12]}"
     out.mkdir(parents=True, exist_ok=True)
     write_text(out / "config.json", json.dumps(cfg.model_dump(mode="json"), indent=1))
     n_params = count_parameters(model)
