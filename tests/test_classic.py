@@ -33,6 +33,36 @@ def test_order_agnostic_and_chunked_pooling_equal():
     assert torch.allclose(a.norm(dim=1), torch.ones(()), atol=1e-5)
 
 
+def test_pixel_normalisation_divides_out_albedo_and_not_the_number_of_lights():
+    """`prepare(normalize="pixel")` (PS-FCN (Norm.)): two Lambertian pixels with the same normal and albedos
+    4x apart read the same values; every object pixel's root mean square over lights and channels is 1 and
+    repeating the lights (N doubled) changes nothing; off the object 0; "object" (the default, the shipped
+    model's) keeps the albedo ratio."""
+    g = torch.Generator().manual_seed(1)
+    K, H, W = 12, 4, 4
+    dirs = torch.nn.functional.normalize(torch.rand(K, 3, generator=g) * torch.tensor([2.0, 2.0, 1.0])
+                                         - torch.tensor([1.0, 1.0, -0.5]), dim=-1)
+    n = torch.nn.functional.normalize(torch.rand(H, W, 3, generator=g) - torch.tensor([0.5, 0.5, -0.6]), dim=-1)
+    albedo = 0.1 + 0.8 * torch.rand(H, W, 3, generator=g)
+    albedo[0, 1] = 4 * albedo[0, 0]
+    n[0, 1] = n[0, 0]
+    shading = (torch.einsum("kc,hwc->khw", dirs, n)).clamp_min(0)  # (K, H, W)
+    images = (shading[:, None] * albedo.permute(2, 0, 1)[None])[None]  # (1, K, 3, H, W)
+    readings = torch.full((1, K, 3), 2.0)
+    mask = torch.ones(1, H, W, dtype=torch.bool)
+    mask[0, 3, 3] = False
+    x = prepare(images, readings, mask, "pixel")
+    assert torch.allclose(x[0, :, :, 0, 0], x[0, :, :, 0, 1], atol=1e-6)
+    rms = (x[0] ** 2).mean((0, 1)).sqrt()
+    assert torch.allclose(rms[mask[0]], torch.ones(()), atol=1e-5) and float(x[0, :, :, 3, 3].abs().max()) == 0.0
+    x2 = prepare(images.repeat(1, 2, 1, 1, 1), readings.repeat(1, 2, 1), mask, "pixel")
+    assert torch.allclose(x2[:, :K], x, atol=1e-6)
+    o = prepare(images, readings, mask)  # "object": albedo ratios stay
+    assert torch.allclose(o[0, :, :, 0, 1], 4 * o[0, :, :, 0, 0], rtol=1e-5)
+    with pytest.raises(ValueError, match="normalize"):
+        prepare(images, readings, mask, "pixels")
+
+
 @pytest.mark.parametrize("K", [1, 3, 96])
 def test_any_number_of_lights(K):
     net = ClassicNet(ClassicNetConfig(3, (8, 16, 16))).eval()
@@ -146,6 +176,11 @@ def test_warm_start_takes_the_checkpoints_weights_and_refuses_mixups_in_one_line
     assert "no-such-model" in line and "not found" in line, line
     line = one_line_error(cli("train", "classic-gpu", *base, "--out", tmp_path / "d", "--init", a / "best.pt"))
     assert "best.pt" in line and "different network" in line, line
+    # the same weights under another input normalisation: a fine-tune, recorded in the new checkpoint
+    r = cli("train", "classic-cpu", *base, "--out", tmp_path / "p", "--init", a / "best.pt", "--set",
+            "net.normalize=pixel", *tiny)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert torch.load(tmp_path / "p" / "last.pt", map_location="cpu", weights_only=True)["config"]["net"]["normalize"] == "pixel"
     line = one_line_error(cli("train", "classic-cpu", *base, "--out", tmp_path / "e", "--init",
                               "models/dualcue-cpu.pt"))
     assert "not an msps classic-network checkpoint" in line, line

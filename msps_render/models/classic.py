@@ -37,6 +37,10 @@ KIND = "classic"
 class ClassicNetSection(StrictModel):
     widths: tuple[int, int, int] = Field((16, 32, 64), description="extractor widths at full, 1/2, 1/4 resolution")
     channels: int = Field(3, ge=1, le=16, description="camera channels per image (the training rig's M)")
+    normalize: Literal["object", "pixel"] = Field(
+        "object", description="input normalisation: 'object' divides each sample by its mean over the object "
+                              "(the exposure); 'pixel' then divides each pixel's observations by their root mean "
+                              "square over the lights (PS-FCN (Norm.): albedo brightness divided out)")
 
 
 class ClassicTrainSection(StrictModel):
@@ -62,7 +66,7 @@ class ClassicConfig(StrictModel):
     train: ClassicTrainSection = ClassicTrainSection()
 
     def net_config(self) -> ClassicNetConfig:
-        return ClassicNetConfig(channels=self.net.channels, widths=tuple(self.net.widths))
+        return ClassicNetConfig(channels=self.net.channels, widths=tuple(self.net.widths), normalize=self.net.normalize)
 
 
 SMOKE = ("train.max_minutes=2.0", "train.val_max_patches=32")
@@ -235,7 +239,7 @@ def validate_model(model: ClassicNet, val: list[dict], chunk: int = 16) -> float
     model.eval()
     s = n = 0.0
     for b in val:
-        x = prepare(b["image"], b["readings"], b["mask"])
+        x = prepare(b["image"], b["readings"], b["mask"], model.cfg.normalize)
         e, c = angular_error_sum(model(x, b["dirs"], chunk), b["normal"], b["mask"])
         s, n = s + e, n + c
     model.train()
@@ -295,7 +299,8 @@ def _check_start(out: Path, resume: bool, init, cfg: ClassicConfig) -> dict | No
     if init is None:
         return None
     _, icfg, ick = load(init)
-    if icfg.net != cfg.net:
+    if (icfg.net.widths, icfg.net.channels) != (cfg.net.widths, cfg.net.channels):  # the weights' shapes; the
+        # input normalisation may change (fine-tuning a network to another one)
         raise InputError(init, f"--init checkpoint has a different network ({icfg.preset}: {icfg.net})")
     return ick
 
@@ -391,7 +396,7 @@ def train_classic(cfg: ClassicConfig, data, val, out, resume: bool = False, prog
                 lr = t.lr * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(prog, 1.0))))
                 for g in opt.param_groups:
                     g["lr"] = lr
-                x = prepare(b["image"], b["readings"], b["mask"])
+                x = prepare(b["image"], b["readings"], b["mask"], model.cfg.normalize)
                 loss = cosine_loss(model(x, b["dirs"]), b["normal"], b["mask"])
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
@@ -457,7 +462,7 @@ class ClassicModel:
             raise InputError(self.path, f"the network takes {self.cfg.net.channels}-channel images, got {M}")
         x = torch.from_numpy(np.ascontiguousarray(shots.transpose(0, 3, 1, 2), np.float32))[None]
         m = torch.from_numpy(np.asarray(mask, bool))[None]
-        x = prepare(x, torch.from_numpy(np.asarray(readings, np.float32))[None], m)
+        x = prepare(x, torch.from_numpy(np.asarray(readings, np.float32))[None], m, self.net.cfg.normalize)
         x, (ph, pw) = pad4(x)
         n = self.net(x, torch.from_numpy(np.asarray(dirs, np.float32))[None], self.chunk)[0]
         n = n[:, :H, :W].permute(1, 2, 0).numpy()

@@ -11,7 +11,11 @@ chunks of lights, so a 96-light DiLiGenT object at full resolution needs the mem
 
 Input convention (`prepare`): each image is divided by its light's reading per channel (so every
 image is the one under a unit white light, as DiLiGenT's images divided by their intensities), then
-the whole sample by its mean over the object: the network never sees the exposure.
+the whole sample by its mean over the object: the network never sees the exposure.  With
+`normalize="pixel"` each pixel's observations are then divided by their root mean square over the
+lights and channels (PS-FCN (Norm.)'s observation normalisation, Chen et al. TPAMI 2020): a Lambertian
+pixel's values no longer depend on its albedo's brightness, so an albedo edge inside a patch is not a
+shading edge; the root mean square rather than the norm keeps the values independent of N.
 """
 from __future__ import annotations
 
@@ -26,6 +30,7 @@ import torch.nn.functional as F
 class ClassicNetConfig:
     channels: int = 3  # camera channels per image (the rig's M)
     widths: tuple[int, int, int] = (32, 64, 128)  # extractor widths at full, 1/2 and 1/4 resolution
+    normalize: str = "object"  # input normalisation (`prepare`): "object" or "pixel"
 
 
 def _conv(i: int, o: int, stride: int = 1) -> nn.Sequential:
@@ -66,12 +71,23 @@ class ClassicNet(nn.Module):
         return F.normalize(self.regress(self.features(images, dirs, chunk)), dim=1)
 
 
-def prepare(images: torch.Tensor, readings: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """images (B, K, C, H, W) / their lights' readings (B, K, C), then / the sample's mean over the object."""
+def prepare(images: torch.Tensor, readings: torch.Tensor, mask: torch.Tensor, normalize: str = "object") -> torch.Tensor:
+    """images (B, K, C, H, W) / their lights' readings (B, K, C), then / the sample's mean over the object;
+    `normalize="pixel"`: then each object pixel / its observations' root mean square over lights and
+    channels (off the object 0; a pixel darker than `PIXEL_FLOOR` of the object's mean is not lifted)."""
     x = images / readings.clamp_min(1e-8)[..., None, None]
     m = mask[:, None, None].to(x.dtype)  # (B, 1, 1, H, W)
     mean = (x * m).sum((1, 2, 3, 4)) / (m.sum((1, 2, 3, 4)) * x.shape[1] * x.shape[2]).clamp_min(1.0)
-    return x / mean.clamp_min(1e-8)[:, None, None, None, None]
+    x = x / mean.clamp_min(1e-8)[:, None, None, None, None]
+    if normalize == "object":
+        return x
+    if normalize != "pixel":
+        raise ValueError(f"normalize must be 'object' or 'pixel', not {normalize!r}")
+    rms = (x * x).mean((1, 2), keepdim=True).sqrt()
+    return x * m / rms.clamp_min(PIXEL_FLOOR)
+
+
+PIXEL_FLOOR = 0.01  # `prepare(normalize="pixel")`: darker pixels (in units of the object's mean) keep their scale
 
 
 def pad4(x: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
