@@ -181,6 +181,8 @@ def test_warm_start_takes_the_checkpoints_weights_and_refuses_mixups_in_one_line
             "net.normalize=pixel", *tiny)
     assert r.returncode == 0, r.stderr[-2000:]
     assert torch.load(tmp_path / "p" / "last.pt", map_location="cpu", weights_only=True)["config"]["net"]["normalize"] == "pixel"
+    line = one_line_error(cli("train", "classic-cpu", *base, "--out", tmp_path / "q", "--set", "net.normalize=pixels"))
+    assert "net.normalize" in line and "'object' or 'pixel'" in line, line
     line = one_line_error(cli("train", "classic-cpu", *base, "--out", tmp_path / "e", "--init",
                               "models/dualcue-cpu.pt"))
     assert "not an msps classic-network checkpoint" in line, line
@@ -190,7 +192,7 @@ def test_warm_start_takes_the_checkpoints_weights_and_refuses_mixups_in_one_line
     assert "nothing to resume" in line, line
     line = one_line_error(cli("train", "classic-cpu", *base, "--out", a, "--resume", "--init", a / "best.pt"))
     assert "--init" in line, line
-    assert not (tmp_path / "d").exists() and not (tmp_path / "e").exists() and not (tmp_path / "f").exists()
+    assert not any((tmp_path / d).exists() for d in ("d", "e", "f", "q"))
 
 
 def test_several_corpora_train_as_one_and_other_rig_sizes_are_refused(rig_data, tmp_path):

@@ -71,6 +71,9 @@ class ClassicNet(nn.Module):
         return F.normalize(self.regress(self.features(images, dirs, chunk)), dim=1)
 
 
+PIXEL_FLOOR = 0.01  # `prepare(normalize="pixel")`: darker pixels (in units of the object's mean) keep their scale
+
+
 def prepare(images: torch.Tensor, readings: torch.Tensor, mask: torch.Tensor, normalize: str = "object") -> torch.Tensor:
     """images (B, K, C, H, W) / their lights' readings (B, K, C), then / the sample's mean over the object;
     `normalize="pixel"`: then each object pixel / its observations' root mean square over lights and
@@ -85,9 +88,6 @@ def prepare(images: torch.Tensor, readings: torch.Tensor, mask: torch.Tensor, no
         raise ValueError(f"normalize must be 'object' or 'pixel', not {normalize!r}")
     rms = (x * x).mean((1, 2), keepdim=True).sqrt()
     return x * m / rms.clamp_min(PIXEL_FLOOR)
-
-
-PIXEL_FLOOR = 0.01  # `prepare(normalize="pixel")`: darker pixels (in units of the object's mean) keep their scale
 
 
 def pad4(x: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
